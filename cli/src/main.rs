@@ -1,0 +1,127 @@
+//! r2g: the one command a person types.
+
+use std::io::Write;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand, ValueEnum};
+use ipc_schema::process;
+use ipc_schema::Mode;
+use runtime::launch::{self, Instance, UpOptions};
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum ModeArg {
+    /// Real time: the runtime ticks at 1 kHz on the wall clock.
+    Wall,
+    /// Simulated time: runtime and simulator advance together, only while a command executes.
+    Lockstep,
+}
+
+/// Real2Gym runtime: run gyms, drive them from Python through `robo`, measure latency.
+#[derive(Parser, Debug)]
+#[command(version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Cmd,
+}
+
+#[derive(Subcommand, Debug)]
+enum Cmd {
+    /// Start a gym: sim-host + 1 kHz runtime. Prints `READY <instance>` when `robo` can connect
+    /// (set R2G_INSTANCE to the same name), runs until Ctrl-C/SIGTERM, then stops both and
+    /// removes their shared memory.
+    Up {
+        /// Gym name (see `r2g gyms`), gym folder, or scene file.
+        gym: String,
+        #[arg(long, value_enum, default_value_t = ModeArg::Wall)]
+        mode: ModeArg,
+        /// Instance name; lets several gyms run side by side.
+        #[arg(long, default_value = "default")]
+        instance: String,
+        /// Camera frames per second (0: no rendering).
+        #[arg(long, default_value_t = 10.0)]
+        render_hz: f64,
+    },
+    /// List the gyms of the pack, one name per line.
+    Gyms,
+    /// Run a benchmark; prints a table and, as the last line, one JSON object.
+    Bench {
+        #[command(subcommand)]
+        which: BenchCmd,
+    },
+}
+
+#[derive(Subcommand, Debug)]
+enum BenchCmd {
+    /// The real 1 kHz tick loop (with sim-host stepping and rendering) beside a bare
+    /// clock_nanosleep loop, measured the same way in the same run.
+    Tick {
+        /// Seconds each loop runs.
+        #[arg(long, default_value_t = 10.0)]
+        seconds: f64,
+        #[arg(long, default_value = "pick_block_plate")]
+        gym: String,
+    },
+}
+
+fn main() {
+    let cli = Cli::parse();
+    process::install_stop_signals();
+    let r = match cli.command {
+        Cmd::Up { gym, mode, instance, render_hz } => up(&gym, mode, &instance, render_hz),
+        Cmd::Gyms => gyms(),
+        Cmd::Bench { which: BenchCmd::Tick { seconds, gym } } => bench::tick::run(&gym, seconds).map(|_| 0),
+    };
+    match r {
+        Ok(code) => std::process::exit(code),
+        Err(e) => {
+            eprintln!("r2g: error: {e:#}");
+            std::process::exit(1);
+        }
+    }
+}
+
+fn gyms() -> anyhow::Result<i32> {
+    let dir = launch::gyms_dir();
+    let mut names: Vec<String> = std::fs::read_dir(&dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .filter_map(|e| e.ok())
+        .filter(|e| e.path().join("scene.toml").is_file())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    for n in names {
+        println!("{n}");
+    }
+    Ok(0)
+}
+
+fn up(gym: &str, mode: ModeArg, instance: &str, render_hz: f64) -> anyhow::Result<i32> {
+    let opts = UpOptions {
+        scene: launch::resolve_scene(gym)?,
+        instance: instance.into(),
+        mode: match mode {
+            ModeArg::Wall => Mode::Wall,
+            ModeArg::Lockstep => Mode::Lockstep,
+        },
+        render_hz,
+        control_args: Vec::new(),
+        ready_timeout: Duration::from_secs(60),
+    };
+    let mut inst = Instance::up(&opts)?;
+    println!("READY {instance}");
+    std::io::stdout().flush()?;
+    loop {
+        if process::stop_requested() {
+            inst.stop();
+            eprintln!("r2g: instance '{instance}' stopped");
+            return Ok(0);
+        }
+        if let Some(what) = inst.exited()? {
+            eprintln!("r2g: {what}; stopping instance '{instance}'");
+            inst.stop();
+            return Ok(1);
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}

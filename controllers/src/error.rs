@@ -1,0 +1,68 @@
+use std::fmt;
+
+/// Errors while building a robot model.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum Error {
+    #[error("URDF does not parse: {0}")]
+    Urdf(String),
+    #[error("URDF has no link named '{link}' (links: {known})")]
+    NoSuchLink { link: String, known: String },
+    #[error("URDF chain from the root to '{link}' has {found} revolute joints, expected 7")]
+    WrongDof { link: String, found: usize },
+    #[error("URDF joint '{joint}' has an unusable limit: {detail}")]
+    BadLimit { joint: String, detail: String },
+    #[error("URDF has no prismatic finger joint under link '{link}'")]
+    NoFinger { link: String },
+}
+
+/// Why a chunk was refused. Never clipped into acceptance: the agent gets this back.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum Rejection {
+    Empty,
+    TooLong { len: usize, max: usize },
+    NotFinite { waypoint: usize, index: usize },
+    BadFrequency { freq_hz: f64, max_hz: f64 },
+    JointOutOfRange { waypoint: usize, joint: usize, value: f64, min: f64, max: f64 },
+    GripperOutOfRange { waypoint: usize, value: f64 },
+    UnknownControlType(u32),
+    UnsupportedControlType(&'static str),
+    ControlTypeLocked { locked: &'static str, requested: &'static str },
+    Busy,
+}
+
+impl fmt::Display for Rejection {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Empty => write!(f, "actions is empty: send at least one waypoint"),
+            Self::TooLong { len, max } => write!(f, "actions has {len} waypoints, at most {max} are accepted: split the chunk"),
+            Self::NotFinite { waypoint, index } => {
+                write!(f, "actions[{waypoint}][{index}] is not a finite number (NaN or infinity)")
+            }
+            Self::BadFrequency { freq_hz, max_hz } => {
+                write!(f, "freq {freq_hz} Hz is not usable: give \"\" (20 Hz) or a rate in (0, {max_hz}] Hz")
+            }
+            Self::JointOutOfRange { waypoint, joint, value, min, max } => {
+                let by = if value < min { min - value } else { value - max };
+                write!(
+                    f,
+                    "actions[{waypoint}] joint {} = {value:.4} rad is outside the allowed range [{min:.4}, {max:.4}] rad by {by:.4} rad",
+                    joint + 1
+                )
+            }
+            Self::GripperOutOfRange { waypoint, value } => {
+                write!(f, "actions[{waypoint}] gripper = {value} is outside [-1 (open), +1 (closed)]")
+            }
+            Self::UnknownControlType(t) => write!(f, "unknown control type code {t}: use \"joint\" or \"ee_pose\""),
+            Self::UnsupportedControlType(t) => {
+                write!(f, "control type \"{t}\" is not available in this runtime yet: use \"joint\"")
+            }
+            Self::ControlTypeLocked { locked, requested } => write!(
+                f,
+                "this episode uses \"{locked}\" control; \"{requested}\" is rejected until reset()"
+            ),
+            Self::Busy => write!(f, "another request is executing: wait for it to finish"),
+        }
+    }
+}

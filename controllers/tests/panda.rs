@@ -1,0 +1,159 @@
+//! The controllers against the shipped Panda description.
+
+use controllers::chunk::Reference;
+use controllers::robot::{PANDA_DDQ_MAX, PANDA_JERK_MAX};
+use controllers::{ChunkPlan, JointTracker, LimiterConfig, Rejection, RobotModel, N};
+
+fn panda() -> RobotModel {
+    let xml = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../robots/panda/panda.urdf")).expect("URDF");
+    RobotModel::from_urdf_str(&xml, "hand_tcp", PANDA_DDQ_MAX, PANDA_JERK_MAX).expect("model")
+}
+
+const HOME: [f64; N] = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785];
+
+#[test]
+fn urdf_gives_the_published_panda_limits() {
+    let r = panda();
+    assert_eq!(r.joint_names[0], "joint1");
+    assert_eq!(r.joint_names[6], "joint7");
+    assert_eq!(r.joints[3].q_max_rad, -0.0698);
+    assert_eq!(r.joints[3].q_min_rad, -3.0718);
+    assert_eq!(r.joints[5].q_min_rad, -0.0175);
+    assert_eq!(r.joints[4].dq_max_rad_s, 2.61);
+    assert_eq!(r.finger_joint, "finger_joint1");
+    assert_eq!(r.finger_max_m, 0.04);
+    assert_eq!(r.finger_from_gripper(-1.0), 0.04);
+    assert_eq!(r.finger_from_gripper(1.0), 0.0);
+}
+
+#[test]
+fn malformed_urdf_is_a_clear_error() {
+    let e = RobotModel::from_urdf_str("<robot name='x'><link", "tcp", PANDA_DDQ_MAX, PANDA_JERK_MAX).unwrap_err();
+    assert!(e.to_string().contains("URDF does not parse"), "{e}");
+    let xml = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../robots/panda/panda.urdf")).expect("URDF");
+    let e = RobotModel::from_urdf_str(&xml, "no_such_link", PANDA_DDQ_MAX, PANDA_JERK_MAX).unwrap_err();
+    assert!(e.to_string().contains("no link named 'no_such_link'"), "{e}");
+    let e = RobotModel::from_urdf_str(&xml, "link4", PANDA_DDQ_MAX, PANDA_JERK_MAX).unwrap_err();
+    assert!(e.to_string().contains("4 revolute joints, expected 7"), "{e}");
+}
+
+fn wp(q: [f64; N], g: f64) -> [f64; 8] {
+    let mut w = [0.0; 8];
+    w[..N].copy_from_slice(&q);
+    w[N] = g;
+    w
+}
+
+#[test]
+fn bad_chunks_are_rejected_with_the_offending_value() {
+    let (r, c) = (panda(), LimiterConfig::default());
+    let plan = |a: &[[f64; 8]], f: f64| ChunkPlan::joint(a, f, HOME, &r, &c).map(|_| ()).unwrap_err();
+    assert_eq!(plan(&[], 0.0), Rejection::Empty);
+    let mut nan = wp(HOME, 0.0);
+    nan[2] = f64::NAN;
+    assert_eq!(plan(&[wp(HOME, 0.0), nan], 0.0), Rejection::NotFinite { waypoint: 1, index: 2 });
+    let mut far = HOME;
+    far[3] = 0.2;
+    match plan(&[wp(far, 0.0)], 0.0) {
+        Rejection::JointOutOfRange { waypoint: 0, joint: 3, .. } => {}
+        other => panic!("{other:?}"),
+    }
+    assert!(matches!(plan(&[wp(HOME, 1.5)], 0.0), Rejection::GripperOutOfRange { .. }));
+    assert!(matches!(plan(&[wp(HOME, 0.0)], -5.0), Rejection::BadFrequency { .. }));
+    assert!(matches!(plan(&[wp(HOME, 0.0)], 1e9), Rejection::BadFrequency { .. }));
+    assert!(matches!(plan(&vec![wp(HOME, 0.0); 300], 0.0), Rejection::TooLong { len: 300, .. }));
+    let msg = Rejection::JointOutOfRange { waypoint: 0, joint: 3, value: 0.2, min: -3.0, max: -0.08 }.to_string();
+    assert!(msg.contains("joint 4") && msg.contains("by 0.2800 rad"), "{msg}");
+}
+
+#[test]
+fn fast_rates_never_buy_speed_past_the_limits() {
+    let (r, c) = (panda(), LimiterConfig::default());
+    let mut goal = HOME;
+    goal[0] = 1.0;
+    let plan = ChunkPlan::joint(&[wp(goal, -1.0)], 1000.0, HOME, &r, &c).expect("valid");
+    // 1 rad at half of 2.175 rad/s takes at least 0.92 s, whatever freq says.
+    assert!(plan.duration_s() >= 1.0 / (c.speed_scale * 2.175), "{}", plan.duration_s());
+}
+
+/// xorshift: deterministic adversarial inputs without a dependency.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> f64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+#[test]
+fn the_limiter_output_never_breaks_a_limit_whatever_the_reference() {
+    let (r, c) = (panda(), LimiterConfig::default());
+    let dt = 0.001;
+    let mut t = JointTracker::at_rest(HOME, 0.04, &r, &c);
+    let mut rng = Rng(0x9e3779b97f4a7c15);
+    let mut reference = Reference { q_rad: HOME, dq_rad_s: [0.0; N], gripper: -1.0, reached: 0, finished: false };
+    for tick in 0..200_000 {
+        if tick % 37 == 0 {
+            for j in 0..N {
+                reference.q_rad[j] = match (rng.next() * 6.0) as u32 {
+                    0 => f64::NAN,
+                    1 => f64::INFINITY,
+                    2 => (rng.next() - 0.5) * 1e6,
+                    _ => r.joints[j].q_min_rad + rng.next() * (r.joints[j].q_max_rad - r.joints[j].q_min_rad),
+                };
+                reference.dq_rad_s[j] = if rng.next() < 0.1 { f64::NEG_INFINITY } else { (rng.next() - 0.5) * 100.0 };
+            }
+            reference.gripper = if rng.next() < 0.1 { f64::NAN } else { (rng.next() - 0.5) * 10.0 };
+        }
+        let before = t;
+        t.step(&reference, dt, &r, &c);
+        for j in 0..N {
+            let l = r.joints[j];
+            let q = t.q_rad[j];
+            assert!(q.is_finite() && q >= l.q_min_rad + c.q_margin_rad - 1e-12 && q <= l.q_max_rad - c.q_margin_rad + 1e-12, "tick {tick} joint {j} q {q}");
+            assert!(t.dq_rad_s[j].abs() <= l.dq_max_rad_s + 1e-9, "tick {tick} joint {j} v {}", t.dq_rad_s[j]);
+            let dv = (t.dq_rad_s[j] - before.dq_rad_s[j]).abs();
+            // A stop at a position limit zeroes velocity; any other change respects the acceleration.
+            let at_limit = t.dq_rad_s[j] == 0.0;
+            assert!(at_limit || dv <= c.accel_scale * l.ddq_max_rad_s2 * dt + 1e-9, "tick {tick} joint {j} dv {dv}");
+            assert!((t.q_rad[j] - before.q_rad[j]).abs() <= l.dq_max_rad_s * dt + 1e-9);
+        }
+        assert!((0.0..=r.finger_max_m).contains(&t.finger_m));
+        assert!((t.finger_m - before.finger_m).abs() <= r.finger_speed_m_s * dt + 1e-12);
+    }
+}
+
+#[test]
+fn a_chunk_is_tracked_to_its_last_waypoint() {
+    let (r, c) = (panda(), LimiterConfig::default());
+    let mut goal = HOME;
+    goal[1] = -0.3;
+    goal[5] = 2.0;
+    let actions: Vec<[f64; 8]> = (1..=10)
+        .map(|k| {
+            let mut q = HOME;
+            for j in 0..N {
+                q[j] += (goal[j] - HOME[j]) * k as f64 / 10.0;
+            }
+            wp(q, 1.0)
+        })
+        .collect();
+    let plan = ChunkPlan::joint(&actions, 0.0, HOME, &r, &c).expect("valid");
+    let mut t = JointTracker::at_rest(HOME, 0.04, &r, &c);
+    let mut time = 0.0;
+    loop {
+        time += 0.001;
+        let reference = plan.sample(time);
+        t.step(&reference, 0.001, &r, &c);
+        if reference.finished && t.settled_on(&reference, &r) {
+            break;
+        }
+        assert!(time < 10.0, "never settled");
+    }
+    for j in 0..N {
+        assert!((t.q_rad[j] - goal[j]).abs() < 1e-6);
+    }
+    assert_eq!(t.finger_m, 0.0);
+}

@@ -1,0 +1,639 @@
+#![doc = include_str!("../README.md")]
+
+pub mod process;
+
+use core::time::Duration;
+
+use iceoryx2::prelude::*;
+use iceoryx2::service::attribute::{AttributeKey, AttributeValue};
+use iceoryx2::service::port_factory::{event, publish_subscribe};
+
+/// Bumped whenever any payload below changes layout or meaning. Every service carries it as
+/// the attribute `r2g.schema`; a process of another build is refused when it connects.
+pub const SCHEMA_VERSION: u32 = 1;
+/// Attribute key that carries [`SCHEMA_VERSION`] on every service.
+pub const SCHEMA_ATTRIBUTE: &str = "r2g.schema";
+
+/// Arm joints of the supported robots (Panda, FR3).
+pub const N_JOINTS: usize = 7;
+/// Values per waypoint: 7 joints + gripper, or xyz + axis-angle + gripper (7, padded to 8).
+pub const WAYPOINT_LEN: usize = 8;
+/// Waypoints one chunk may carry.
+pub const MAX_CHUNK: usize = 256;
+/// Largest frame a camera service carries; smaller frames use the top-left part of the buffers.
+pub const MAX_IMAGE_WIDTH: usize = 640;
+/// See [`MAX_IMAGE_WIDTH`].
+pub const MAX_IMAGE_HEIGHT: usize = 480;
+/// Cameras one sim-host can publish.
+pub const MAX_CAMERAS: usize = 4;
+/// Bytes of a camera name, NUL-padded UTF-8.
+pub const NAME_LEN: usize = 32;
+/// Bytes of a reason text, NUL-padded UTF-8.
+pub const REASON_LEN: usize = 240;
+
+/// A rigid transform: translation in metres and a unit quaternion `[x, y, z, w]`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("r2g.Pose.v1")]
+pub struct Pose {
+    pub position_m: [f64; 3],
+    pub quat_xyzw: [f64; 4],
+}
+
+impl Default for Pose {
+    fn default() -> Self {
+        Self { position_m: [0.0; 3], quat_xyzw: [0.0, 0.0, 0.0, 1.0] }
+    }
+}
+
+/// sim-host → runtime, once per physics step: the measured robot, as a real arm would report it.
+/// Holds no object poses: privileged simulator state never crosses IPC.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+#[type_name("r2g.SimState.v1")]
+pub struct SimState {
+    /// Increments with every published state.
+    pub seq: u64,
+    /// The command sequence number this state answers (0 before the first command).
+    pub command_seq: u64,
+    /// The id of the last reset this sim-host completed (0: none).
+    pub reset_id: u64,
+    /// Simulated time in seconds.
+    pub sim_time_s: f64,
+    pub q_rad: [f64; N_JOINTS],
+    pub dq_rad_s: [f64; N_JOINTS],
+    /// Opening of one finger, 0 (closed) … `gripper_max_m`.
+    pub finger_m: f64,
+    pub finger_max_m: f64,
+    pub base_from_tcp: Pose,
+}
+
+/// runtime → sim-host, once per tick: the limited joint command.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+#[type_name("r2g.JointCommand.v1")]
+pub struct JointCommand {
+    pub seq: u64,
+    /// The state this command was computed from.
+    pub state_seq: u64,
+    pub q_rad: [f64; N_JOINTS],
+    pub dq_rad_s: [f64; N_JOINTS],
+    /// Commanded opening of one finger in metres.
+    pub finger_m: f64,
+}
+
+/// runtime → sim-host: restore the scene's initial state.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+#[type_name("r2g.SimReset.v1")]
+pub struct SimReset {
+    pub id: u64,
+}
+
+/// Control type of a chunk; fixed per episode in the simulation profile.
+#[repr(u32)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ControlType {
+    Joint = 1,
+    EePose = 2,
+}
+
+impl ControlType {
+    pub fn from_u32(v: u32) -> Option<Self> {
+        match v {
+            1 => Some(Self::Joint),
+            2 => Some(Self::EePose),
+            _ => None,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Joint => "joint",
+            Self::EePose => "ee_pose",
+        }
+    }
+}
+
+/// What an agent asks of the runtime.
+#[repr(u32)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RequestKind {
+    Chunk = 1,
+    Reset = 2,
+}
+
+/// agent → runtime: an action chunk or a reset.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[type_name("r2g.Request.v1")]
+pub struct Request {
+    /// Chosen by the agent, unique per agent process; the reply carries it back.
+    pub id: u64,
+    /// Identifies the requesting agent process, so replies can be matched to it.
+    pub client: u64,
+    /// A [`RequestKind`] as u32 (unknown values are rejected, not trusted).
+    pub kind: u32,
+    /// A [`ControlType`] as u32.
+    pub control_type: u32,
+    /// Waypoints used in `actions`.
+    pub len: u32,
+    pub _pad: u32,
+    /// Waypoint rate in Hz; 0 means the profile default (20 Hz).
+    pub freq_hz: f64,
+    pub actions: [[f64; WAYPOINT_LEN]; MAX_CHUNK],
+}
+
+/// Outcome of a request, as `robo` reports it in `control_feedback.status`.
+#[repr(u32)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Status {
+    Accepted = 1,
+    Executed = 2,
+    Rejected = 3,
+    Failed = 4,
+    RecoveredReplanRequired = 5,
+    OperatorRequired = 6,
+}
+
+impl Status {
+    pub fn from_u32(v: u32) -> Option<Self> {
+        Some(match v {
+            1 => Self::Accepted,
+            2 => Self::Executed,
+            3 => Self::Rejected,
+            4 => Self::Failed,
+            5 => Self::RecoveredReplanRequired,
+            6 => Self::OperatorRequired,
+            _ => return None,
+        })
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Accepted => "accepted",
+            Self::Executed => "executed",
+            Self::Rejected => "rejected",
+            Self::Failed => "failed",
+            Self::RecoveredReplanRequired => "recovered_replan_required",
+            Self::OperatorRequired => "operator_required",
+        }
+    }
+}
+
+/// runtime → agent: progress and outcome of a [`Request`].
+#[repr(C)]
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[type_name("r2g.Reply.v1")]
+pub struct Reply {
+    pub id: u64,
+    pub client: u64,
+    /// A [`Status`] as u32.
+    pub status: u32,
+    /// Waypoints fully executed so far.
+    pub executed: u32,
+    /// Largest |measured − target| over the arm joints when the request ended, rad.
+    pub final_joint_error_rad: f64,
+    /// Why, in words a model can act on (NUL-padded UTF-8).
+    pub reason: [u8; REASON_LEN],
+}
+
+impl Reply {
+    pub fn new(id: u64, client: u64, status: Status, reason: &str) -> Self {
+        let mut r = Self { id, client, status: status as u32, executed: 0, final_joint_error_rad: 0.0, reason: [0; REASON_LEN] };
+        write_str(&mut r.reason, reason);
+        r
+    }
+    pub fn reason_str(&self) -> &str {
+        read_str(&self.reason)
+    }
+}
+
+/// Tick-loop mode.
+#[repr(u32)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mode {
+    Wall = 1,
+    Lockstep = 2,
+}
+
+/// runtime → agents, once per tick (wall) or per step (lockstep): the agent-facing robot state.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+#[type_name("r2g.RobotState.v1")]
+pub struct RobotState {
+    pub seq: u64,
+    /// Simulated (or robot) time of the underlying measurement, s.
+    pub timestamp_s: f64,
+    /// CLOCK_MONOTONIC when the runtime published this, ns; a stale value means a dead runtime.
+    pub published_ns: u64,
+    pub q_rad: [f64; N_JOINTS],
+    pub dq_rad_s: [f64; N_JOINTS],
+    /// −1 open … +1 closed.
+    pub gripper: f64,
+    pub base_from_tcp: Pose,
+    /// The control type locked for this episode (0: none yet).
+    pub control_type: u32,
+    /// A [`Mode`] as u32.
+    pub mode: u32,
+    /// The request the runtime is executing (0: idle).
+    pub active_request: u64,
+    /// The last completed reset id.
+    pub reset_id: u64,
+}
+
+/// runtime → agents, published once with history: the limits in force (`effective_safety`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+#[type_name("r2g.RuntimeInfo.v1")]
+pub struct RuntimeInfo {
+    pub schema: u32,
+    pub mode: u32,
+    pub tick_period_ns: u64,
+    pub q_min_rad: [f64; N_JOINTS],
+    pub q_max_rad: [f64; N_JOINTS],
+    pub dq_max_rad_s: [f64; N_JOINTS],
+    pub ddq_max_rad_s2: [f64; N_JOINTS],
+    /// Position margin kept inside each joint limit, rad.
+    pub q_margin_rad: f64,
+    /// Fraction of the velocity limits that chunk timing plans for.
+    pub speed_scale: f64,
+    pub max_chunk: u32,
+    pub default_freq_hz: f64,
+    pub finger_max_m: f64,
+    pub finger_speed_m_s: f64,
+}
+
+/// sim-host → agents, published once with history: which cameras exist.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+#[type_name("r2g.SimInfo.v1")]
+pub struct SimInfo {
+    pub schema: u32,
+    pub camera_count: u32,
+    pub camera_names: [[u8; NAME_LEN]; MAX_CAMERAS],
+    pub physics_timestep_s: f64,
+}
+
+impl SimInfo {
+    pub fn camera_name(&self, i: usize) -> &str {
+        read_str(&self.camera_names[i])
+    }
+}
+
+/// sim-host → agents: one rendered camera image. Written once into a loaned sample; readers
+/// borrow it in place.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[type_name("r2g.CameraFrame.v1")]
+pub struct CameraFrame {
+    pub seq: u64,
+    /// Simulated time of the state this frame shows, s.
+    pub sim_time_s: f64,
+    /// The [`SimState::seq`] of the physics state this frame shows.
+    pub state_seq: u64,
+    /// CLOCK_MONOTONIC at the end of rendering, ns.
+    pub rendered_ns: u64,
+    pub width: u32,
+    pub height: u32,
+    /// 1 when `depth_m` holds depth for this frame.
+    pub has_depth: u32,
+    pub _pad: u32,
+    /// Pinhole intrinsics in pixels (principal point at the image centre for rendered cameras).
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// Camera optical frame (x right, y down, z forward) in the robot base frame.
+    pub base_from_camera: Pose,
+    /// Row-major RGB8, `width × height × 3` bytes used.
+    pub rgb: [u8; MAX_IMAGE_WIDTH * MAX_IMAGE_HEIGHT * 3],
+    /// Row-major depth in metres, `width × height` used when `has_depth`.
+    pub depth_m: [f32; MAX_IMAGE_WIDTH * MAX_IMAGE_HEIGHT],
+}
+
+/// Copies `s` into a NUL-padded byte field, cutting at a UTF-8 boundary if it is too long.
+pub fn write_str(dst: &mut [u8], s: &str) {
+    dst.fill(0);
+    let mut n = s.len().min(dst.len());
+    while !s.is_char_boundary(n) {
+        n -= 1;
+    }
+    dst[..n].copy_from_slice(&s.as_bytes()[..n]);
+}
+
+/// Reads a NUL-padded UTF-8 field written by [`write_str`]; invalid UTF-8 reads as empty.
+pub fn read_str(src: &[u8]) -> &str {
+    let end = src.iter().position(|&b| b == 0).unwrap_or(src.len());
+    core::str::from_utf8(&src[..end]).unwrap_or("")
+}
+
+/// Errors when connecting to the services of an instance.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SchemaError {
+    #[error("invalid service name '{name}': {detail}")]
+    BadName { name: String, detail: String },
+    #[error(
+        "schema version mismatch on service '{service}': this build speaks r2g schema {ours}, \
+         the process that created the service speaks another one. Stop every r2g process and \
+         start them all from the same build"
+    )]
+    VersionMismatch { service: String, ours: u32 },
+    #[error("service '{service}' does not exist yet (is `r2g up` running for this instance?)")]
+    Missing { service: String },
+    #[error("cannot open service '{service}': {detail}")]
+    Open { service: String, detail: String },
+    #[error("cannot create an iceoryx2 node: {0}")]
+    Node(String),
+}
+
+/// Names of every service of one instance. Instances let many gyms share one machine.
+#[derive(Debug, Clone)]
+pub struct Services {
+    pub instance: String,
+}
+
+impl Services {
+    /// Instance names are 1–32 characters of `[A-Za-z0-9_-]`.
+    pub fn new(instance: &str) -> Result<Self, SchemaError> {
+        let ok = !instance.is_empty()
+            && instance.len() <= 32
+            && instance.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-');
+        if !ok {
+            return Err(SchemaError::BadName {
+                name: instance.to_string(),
+                detail: "an instance name is 1-32 characters of A-Z a-z 0-9 _ -".into(),
+            });
+        }
+        Ok(Self { instance: instance.to_string() })
+    }
+    pub fn name(&self, leaf: &str) -> String {
+        format!("r2g/{}/{}", self.instance, leaf)
+    }
+    pub fn sim_state(&self) -> String {
+        self.name("sim/state")
+    }
+    pub fn sim_info(&self) -> String {
+        self.name("sim/info")
+    }
+    pub fn sim_reset(&self) -> String {
+        self.name("sim/reset")
+    }
+    pub fn command(&self) -> String {
+        self.name("control/command")
+    }
+    pub fn robot_state(&self) -> String {
+        self.name("control/state")
+    }
+    pub fn runtime_info(&self) -> String {
+        self.name("control/info")
+    }
+    pub fn request(&self) -> String {
+        self.name("agent/request")
+    }
+    pub fn reply(&self) -> String {
+        self.name("control/reply")
+    }
+    pub fn camera(&self, camera: &str) -> String {
+        self.name(&format!("camera/{camera}"))
+    }
+    /// Wakes the sim-host when a command or reset is published.
+    pub fn sim_wake(&self) -> String {
+        self.name("sim/wake")
+    }
+    /// Wakes the runtime when a state or request is published.
+    pub fn control_wake(&self) -> String {
+        self.name("control/wake")
+    }
+    /// Wakes agents when a reply or frame is published.
+    pub fn agent_wake(&self) -> String {
+        self.name("agent/wake")
+    }
+}
+
+/// How a publish-subscribe service is sized. Defaults suit a state stream.
+#[derive(Debug, Clone, Copy)]
+pub struct Qos {
+    pub history: usize,
+    pub buffer: usize,
+    pub max_publishers: usize,
+    pub max_subscribers: usize,
+}
+
+impl Qos {
+    /// Newest-sample streams: one buffered sample, overwritten by the next.
+    pub const STREAM: Qos = Qos { history: 1, buffer: 1, max_publishers: 2, max_subscribers: 16 };
+    /// Requests and replies: a few in flight, none lost while the reader is busy.
+    pub const QUEUE: Qos = Qos { history: 0, buffer: 16, max_publishers: 16, max_subscribers: 16 };
+}
+
+pub type PubSub<T> = publish_subscribe::PortFactory<ipc::Service, T, ()>;
+pub type Event = event::PortFactory<ipc::Service>;
+
+fn service_name(name: &str) -> Result<ServiceName, SchemaError> {
+    ServiceName::new(name).map_err(|e| SchemaError::BadName { name: name.into(), detail: format!("{e:?}") })
+}
+
+fn verifier() -> AttributeVerifier {
+    // Constant keys and values that fit the attribute limits: these cannot fail.
+    let key = AttributeKey::try_from(SCHEMA_ATTRIBUTE).expect("constant attribute key");
+    let value = AttributeValue::try_from(SCHEMA_VERSION.to_string().as_str()).expect("short attribute value");
+    AttributeVerifier::new().require(&key, &value).expect("one attribute fits")
+}
+
+/// Opens the service, creating it if nobody has yet; refuses one of another schema version.
+pub fn open_or_create_pubsub<T: core::fmt::Debug + ZeroCopySend>(
+    node: &Node<ipc::Service>,
+    name: &str,
+    qos: Qos,
+) -> Result<PubSub<T>, SchemaError> {
+    let sn = service_name(name)?;
+    let mut tries = 0;
+    loop {
+        let r = node
+            .service_builder(&sn)
+            .publish_subscribe::<T>()
+            .history_size(qos.history)
+            .subscriber_max_buffer_size(qos.buffer.max(qos.history).max(1))
+            .max_publishers(qos.max_publishers)
+            .max_subscribers(qos.max_subscribers)
+            .max_nodes(32)
+            .enable_safe_overflow(true)
+            .open_or_create_with_attributes(&verifier());
+        match r {
+            Ok(s) => return Ok(s),
+            Err(e) => {
+                let text = format!("{e:?}");
+                if text.contains("IncompatibleAttributes") || text.contains("IncompatibleTypes") {
+                    return Err(SchemaError::VersionMismatch { service: name.into(), ours: SCHEMA_VERSION });
+                }
+                // A service being torn down by its last user can be re-created a moment later.
+                if (text.contains("IsMarkedForDestruction") || text.contains("IsBeingCreatedByAnotherInstance"))
+                    && tries < 50
+                {
+                    tries += 1;
+                    std::thread::sleep(Duration::from_millis(10));
+                    continue;
+                }
+                return Err(SchemaError::Open { service: name.into(), detail: text });
+            }
+        }
+    }
+}
+
+/// Opens or creates an event service used to wake a waiting process.
+pub fn open_or_create_event(node: &Node<ipc::Service>, name: &str) -> Result<Event, SchemaError> {
+    let sn = service_name(name)?;
+    let mut tries = 0;
+    loop {
+        let r = node
+            .service_builder(&sn)
+            .event()
+            .max_notifiers(32)
+            .max_listeners(32)
+            .max_nodes(32)
+            .open_or_create_with_attributes(&verifier());
+        match r {
+            Ok(s) => return Ok(s),
+            Err(e) => {
+                let text = format!("{e:?}");
+                if text.contains("IncompatibleAttributes") {
+                    return Err(SchemaError::VersionMismatch { service: name.into(), ours: SCHEMA_VERSION });
+                }
+                if text.contains("IsMarkedForDestruction") && tries < 50 {
+                    tries += 1;
+                    std::thread::sleep(Duration::from_millis(10));
+                    continue;
+                }
+                return Err(SchemaError::Open { service: name.into(), detail: text });
+            }
+        }
+    }
+}
+
+/// Creates a node for one r2g process. Signal handling stays with the process itself.
+pub fn node(name: &str) -> Result<Node<ipc::Service>, SchemaError> {
+    let node_name = NodeName::new(name).map_err(|e| SchemaError::Node(format!("{e:?}")))?;
+    NodeBuilder::new()
+        .name(&node_name)
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<ipc::Service>()
+        .map_err(|e| SchemaError::Node(format!("{e:?}")))
+}
+
+/// Removes the shared-memory leftovers of r2g processes that died without cleaning up
+/// (SIGKILL, power loss). Returns how many dead nodes were cleaned.
+pub fn cleanup_dead_nodes() -> usize {
+    let mut cleaned = 0;
+    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+        if let NodeState::<ipc::Service>::Dead(view) = state {
+            if view.try_remove_stale_resources().is_ok() {
+                cleaned += 1;
+            }
+        }
+        CallbackProgression::Continue
+    });
+    cleaned
+}
+
+/// CLOCK_MONOTONIC in nanoseconds, the time base of every `*_ns` field; comparable across processes.
+pub fn monotonic_ns() -> u64 {
+    let mut ts = TimeSpec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes into the valid timespec we pass; CLOCK_MONOTONIC always exists.
+    unsafe { clock_gettime(1, &mut ts) };
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+}
+
+#[repr(C)]
+struct TimeSpec {
+    tv_sec: i64,
+    tv_nsec: i64,
+}
+
+extern "C" {
+    fn clock_gettime(clk: i32, ts: *mut TimeSpec) -> i32;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn strings_round_trip_and_cut_at_char_boundaries() {
+        let mut buf = [0u8; 5];
+        write_str(&mut buf, "héllo");
+        assert_eq!(read_str(&buf), "héll");
+        write_str(&mut buf, "ab");
+        assert_eq!(read_str(&buf), "ab");
+    }
+
+    #[test]
+    fn instance_names_are_checked() {
+        assert!(Services::new("gym-1_a").is_ok());
+        assert!(Services::new("").is_err());
+        assert!(Services::new("a/b").is_err());
+        assert!(Services::new(&"x".repeat(33)).is_err());
+    }
+
+    #[test]
+    fn enums_reject_unknown_values() {
+        assert_eq!(ControlType::from_u32(1), Some(ControlType::Joint));
+        assert_eq!(ControlType::from_u32(9), None);
+        assert_eq!(Status::from_u32(0), None);
+        assert_eq!(Status::from_u32(6).map(Status::name), Some("operator_required"));
+    }
+
+    #[test]
+    fn payloads_keep_their_sizes() {
+        // A layout change must bump SCHEMA_VERSION; this test makes the change visible.
+        assert_eq!(core::mem::size_of::<SimState>(), 216);
+        assert_eq!(core::mem::size_of::<Request>(), 40 + 8 * WAYPOINT_LEN * MAX_CHUNK);
+        assert_eq!(core::mem::size_of::<RobotState>(), 224);
+    }
+}
+
+#[cfg(test)]
+mod schema_tests {
+    use super::*;
+
+    fn unique(tag: &str) -> String {
+        format!("r2g/test-{}-{}/{tag}", std::process::id(), monotonic_ns())
+    }
+
+    #[test]
+    fn a_service_of_another_schema_version_is_refused_clearly() {
+        let node = node(&format!("schema-test-{}", std::process::id())).expect("node");
+        let name = unique("state");
+        let key = AttributeKey::try_from(SCHEMA_ATTRIBUTE).expect("key");
+        let other = AttributeValue::try_from("999").expect("value");
+        let _old = node
+            .service_builder(&ServiceName::new(&name).expect("name"))
+            .publish_subscribe::<SimState>()
+            .create_with_attributes(&AttributeSpecifier::new().define(&key, &other).expect("define"))
+            .expect("create service of another schema");
+        let err = open_or_create_pubsub::<SimState>(&node, &name, Qos::STREAM).err().expect("must be refused");
+        assert!(matches!(err, SchemaError::VersionMismatch { .. }), "{err}");
+        assert!(err.to_string().contains("schema version mismatch"), "{err}");
+    }
+
+    #[test]
+    fn a_service_with_another_payload_layout_is_refused_clearly() {
+        let node = node(&format!("schema-test2-{}", std::process::id())).expect("node");
+        let name = unique("cmd");
+        let _ours = open_or_create_pubsub::<JointCommand>(&node, &name, Qos::STREAM).expect("create");
+        let err = open_or_create_pubsub::<SimState>(&node, &name, Qos::STREAM).err().expect("must be refused");
+        assert!(matches!(err, SchemaError::VersionMismatch { .. }), "{err}");
+    }
+
+    #[test]
+    fn the_same_schema_opens() {
+        let node = node(&format!("schema-test3-{}", std::process::id())).expect("node");
+        let name = unique("ok");
+        let a = open_or_create_pubsub::<RobotState>(&node, &name, Qos::STREAM).expect("create");
+        let b = open_or_create_pubsub::<RobotState>(&node, &name, Qos::STREAM).expect("open");
+        let publisher = a.publisher_builder().create().expect("publisher");
+        let subscriber = b.subscriber_builder().create().expect("subscriber");
+        publisher.send_copy(RobotState { seq: 7, ..Default::default() }).expect("send");
+        let got = subscriber.receive().expect("receive").expect("a sample");
+        assert_eq!(got.seq, 7);
+    }
+}

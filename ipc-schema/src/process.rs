@@ -1,0 +1,107 @@
+//! Process plumbing every r2g process shares: stop on SIGINT/SIGTERM, and notice when a peer
+//! process has died (its iceoryx2 node is gone or dead) without waiting on it.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use iceoryx2::node::NodeView;
+use iceoryx2::prelude::*;
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_stop_signal(_: libc::c_int) {
+    STOP.store(true, Ordering::SeqCst);
+}
+
+/// Makes SIGINT and SIGTERM set a flag that [`stop_requested`] reads.
+pub fn install_stop_signals() {
+    // SAFETY: the handler only stores to an atomic, which is async-signal-safe.
+    unsafe {
+        libc::signal(libc::SIGINT, on_stop_signal as *const () as libc::sighandler_t);
+        libc::signal(libc::SIGTERM, on_stop_signal as *const () as libc::sighandler_t);
+    }
+}
+
+pub fn stop_requested() -> bool {
+    STOP.load(Ordering::Relaxed)
+}
+
+/// Asks the kernel to send SIGTERM to this process when its parent dies, so that a killed
+/// supervisor never leaves orphans behind.
+pub fn die_with_parent() {
+    // SAFETY: prctl with PR_SET_PDEATHSIG takes a signal number and has no memory effects.
+    unsafe {
+        libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+    }
+}
+
+/// Whether a node of this name is alive: `Some(true)` alive, `Some(false)` dead (crashed),
+/// `None` not registered at all.
+pub fn node_alive(name: &str) -> Option<bool> {
+    let mut found = None;
+    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+        let (alive, details) = match &state {
+            NodeState::<ipc::Service>::Alive(v) => (true, v.details()),
+            NodeState::<ipc::Service>::Dead(v) => (false, v.details()),
+            _ => return CallbackProgression::Continue,
+        };
+        if let Some(d) = details {
+            if d.name().as_str() == name {
+                // Several entries can share a name briefly (a dead one next to its successor).
+                found = Some(found.unwrap_or(false) || alive);
+            }
+        }
+        CallbackProgression::Continue
+    });
+    found
+}
+
+/// Watches a peer node from a background thread; the owner reads one atomic, so the check
+/// costs nothing on a real-time path.
+pub struct PeerWatch {
+    lost: Arc<AtomicBool>,
+    stop: Arc<AtomicBool>,
+}
+
+impl PeerWatch {
+    /// The peer counts as lost once it was seen alive and then is dead or gone, or when it
+    /// never appears within `grace`.
+    pub fn spawn(peer: String, grace: Duration) -> Self {
+        let lost = Arc::new(AtomicBool::new(false));
+        let stop = Arc::new(AtomicBool::new(false));
+        let (l, s) = (lost.clone(), stop.clone());
+        let started = Instant::now();
+        let _ = std::thread::Builder::new().name("peer-watch".into()).spawn(move || {
+            let mut seen = false;
+            while !s.load(Ordering::Relaxed) {
+                match node_alive(&peer) {
+                    Some(true) => seen = true,
+                    Some(false) => l.store(true, Ordering::Relaxed),
+                    None if seen || started.elapsed() > grace => l.store(true, Ordering::Relaxed),
+                    None => {}
+                }
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        });
+        Self { lost, stop }
+    }
+
+    pub fn lost(&self) -> bool {
+        self.lost.load(Ordering::Relaxed)
+    }
+}
+
+impl Drop for PeerWatch {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+/// Node names of the processes of one instance.
+pub fn sim_node(instance: &str) -> String {
+    format!("r2g-sim-{instance}")
+}
+pub fn control_node(instance: &str) -> String {
+    format!("r2g-control-{instance}")
+}

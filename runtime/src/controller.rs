@@ -1,0 +1,240 @@
+//! What one tick decides, without any I/O: accept or reject requests, advance the active
+//! chunk, limit the command, and tell when a request has finished. The same code runs in
+//! wall and lockstep mode, so lockstep results carry over.
+
+use controllers::chunk::Reference;
+use controllers::{ChunkPlan, JointTracker, LimiterConfig, Rejection, RobotModel};
+use ipc_schema::{ControlType, JointCommand, Reply, Request, RequestKind, RobotState, SimState, Status, N_JOINTS};
+
+/// Measured joints must come this close to the final target for a chunk to count as settled.
+const SETTLE_TOL_RAD: f64 = 0.002;
+const SETTLE_VEL_RAD_S: f64 = 0.02;
+/// Longest wait for settling after the command has arrived, s.
+const SETTLE_TIMEOUT_S: f64 = 1.5;
+
+#[derive(Debug, Clone, Copy)]
+enum Phase {
+    Moving,
+    Settling { since_s: f64 },
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Active {
+    id: u64,
+    client: u64,
+    t_s: f64,
+    phase: Phase,
+}
+
+pub struct Controller {
+    pub robot: RobotModel,
+    pub cfg: LimiterConfig,
+    dt_s: f64,
+    tracker: Option<JointTracker>,
+    plan: ChunkPlan,
+    reference: Reference,
+    active: Option<Active>,
+    locked: Option<ControlType>,
+    pending_reset: Option<(u64, u64, u64)>,
+    next_reset_id: u64,
+    finger_prev: f64,
+    finger_still_ticks: u32,
+    cmd_seq: u64,
+}
+
+/// A request the controller wants passed to the simulator.
+pub enum Forward {
+    None,
+    Reset { sim_reset_id: u64 },
+}
+
+impl Controller {
+    pub fn new(robot: RobotModel, cfg: LimiterConfig, dt_s: f64) -> Self {
+        let plan = ChunkPlan::hold([0.0; N_JOINTS], -1.0);
+        let reference = plan.sample(0.0);
+        Self {
+            robot,
+            cfg,
+            dt_s,
+            tracker: None,
+            plan,
+            reference,
+            active: None,
+            locked: None,
+            pending_reset: None,
+            next_reset_id: 1,
+            finger_prev: 0.0,
+            finger_still_ticks: 0,
+            cmd_seq: 0,
+        }
+    }
+
+    /// True while a chunk or reset is in progress (lockstep advances time only then).
+    pub fn busy(&self) -> bool {
+        self.active.is_some() || self.pending_reset.is_some()
+    }
+
+    pub fn locked(&self) -> Option<ControlType> {
+        self.locked
+    }
+
+    pub fn active_request(&self) -> u64 {
+        self.active.map(|a| a.id).or(self.pending_reset.map(|r| r.0)).unwrap_or(0)
+    }
+
+    /// Takes a request. Returns an immediate reply for rejections; accepted work replies later
+    /// from [`Self::tick`].
+    pub fn request(&mut self, req: &Request) -> (Option<Reply>, Forward) {
+        let reject = |why: Rejection| (Some(Reply::new(req.id, req.client, Status::Rejected, &why.to_string())), Forward::None);
+        if self.busy() {
+            return reject(Rejection::Busy);
+        }
+        let Some(tracker) = self.tracker else {
+            let r = Reply::new(req.id, req.client, Status::Failed, "the runtime has no robot state yet: the simulator is not running");
+            return (Some(r), Forward::None);
+        };
+        match req.kind {
+            k if k == RequestKind::Reset as u32 => {
+                let sim_id = self.next_reset_id;
+                self.next_reset_id += 1;
+                self.pending_reset = Some((req.id, req.client, sim_id));
+                (None, Forward::Reset { sim_reset_id: sim_id })
+            }
+            k if k == RequestKind::Chunk as u32 => {
+                let Some(ct) = ControlType::from_u32(req.control_type) else {
+                    return reject(Rejection::UnknownControlType(req.control_type));
+                };
+                if let Some(locked) = self.locked {
+                    if locked != ct {
+                        return reject(Rejection::ControlTypeLocked { locked: locked.name(), requested: ct.name() });
+                    }
+                }
+                if ct == ControlType::EePose {
+                    return reject(Rejection::UnsupportedControlType("ee_pose"));
+                }
+                let len = (req.len as usize).min(req.actions.len() + 1);
+                if len > req.actions.len() {
+                    return reject(Rejection::TooLong { len: req.len as usize, max: req.actions.len() });
+                }
+                match ChunkPlan::joint(&req.actions[..len], req.freq_hz, tracker.q_rad, &self.robot, &self.cfg) {
+                    Ok(plan) => {
+                        self.plan = plan;
+                        self.locked = Some(ct);
+                        self.active = Some(Active { id: req.id, client: req.client, t_s: 0.0, phase: Phase::Moving });
+                        (None, Forward::None)
+                    }
+                    Err(why) => reject(why),
+                }
+            }
+            other => {
+                let msg = format!("unknown request kind {other}");
+                (Some(Reply::new(req.id, req.client, Status::Rejected, &msg)), Forward::None)
+            }
+        }
+    }
+
+    /// One tick: the command to send and, when a request just finished, its reply.
+    pub fn tick(&mut self, state: &SimState) -> (JointCommand, Option<Reply>) {
+        let mut reply = None;
+        if let Some((id, client, sim_id)) = self.pending_reset {
+            if state.reset_id == sim_id {
+                self.tracker = None;
+                self.locked = None;
+                self.pending_reset = None;
+                reply = Some(Reply::new(id, client, Status::Executed, "reset: robot and objects restored"));
+            }
+        }
+        if self.tracker.is_none() {
+            // First state, or first after a reset: hold exactly where the arm is.
+            let t = JointTracker::at_rest(state.q_rad, state.finger_m, &self.robot, &self.cfg);
+            self.reference = Reference {
+                q_rad: t.q_rad,
+                dq_rad_s: [0.0; N_JOINTS],
+                gripper: self.robot.gripper_from_finger(t.finger_m),
+                reached: 0,
+                finished: true,
+            };
+            self.tracker = Some(t);
+        }
+        if let Some(a) = self.active.as_mut() {
+            a.t_s += self.dt_s;
+            self.reference = self.plan.sample(a.t_s);
+        }
+        let Some(tracker) = self.tracker.as_mut() else { unreachable!("set above") };
+        tracker.step(&self.reference, self.dt_s, &self.robot, &self.cfg);
+        let tracker = *tracker;
+
+        // Gripper counts as done when the measured finger has stopped or reached the command.
+        if (state.finger_m - self.finger_prev).abs() < 2e-6 {
+            self.finger_still_ticks = self.finger_still_ticks.saturating_add(1);
+        } else {
+            self.finger_still_ticks = 0;
+        }
+        self.finger_prev = state.finger_m;
+
+        if let Some(mut a) = self.active {
+            match a.phase {
+                Phase::Moving => {
+                    if self.reference.finished && tracker.settled_on(&self.reference, &self.robot) {
+                        a.phase = Phase::Settling { since_s: a.t_s };
+                    }
+                }
+                Phase::Settling { since_s } => {
+                    let target = self.plan.last();
+                    let mut err = 0.0f64;
+                    let mut worst = 0;
+                    let mut moving = false;
+                    for j in 0..N_JOINTS {
+                        let e = (state.q_rad[j] - target.q_rad[j]).abs();
+                        if e > err {
+                            err = e;
+                            worst = j;
+                        }
+                        moving |= state.dq_rad_s[j].abs() > SETTLE_VEL_RAD_S;
+                    }
+                    let finger_done = (state.finger_m - tracker.finger_m).abs() < 1e-3 || self.finger_still_ticks > 50;
+                    let timed_out = a.t_s - since_s > SETTLE_TIMEOUT_S;
+                    if (err < SETTLE_TOL_RAD && !moving && finger_done) || timed_out {
+                        let mut r = if timed_out {
+                            let why = format!(
+                                "executed; the arm stopped {err:.4} rad from the last target at joint {} (blocked by contact?)",
+                                worst + 1
+                            );
+                            Reply::new(a.id, a.client, Status::Executed, &why)
+                        } else {
+                            Reply::new(a.id, a.client, Status::Executed, "executed")
+                        };
+                        r.executed = self.plan.len() as u32;
+                        r.final_joint_error_rad = err;
+                        reply = Some(r);
+                        self.active = None;
+                        self.reference.dq_rad_s = [0.0; N_JOINTS];
+                    }
+                }
+            }
+            if let Some(act) = self.active.as_mut() {
+                act.phase = a.phase;
+            }
+        }
+        self.cmd_seq += 1;
+        let cmd = JointCommand { seq: self.cmd_seq, state_seq: state.seq, q_rad: tracker.q_rad, dq_rad_s: tracker.dq_rad_s, finger_m: tracker.finger_m };
+        (cmd, reply)
+    }
+
+    /// The agent-facing state for the latest measurement.
+    pub fn robot_state(&self, state: &SimState, seq: u64, mode: u32) -> RobotState {
+        RobotState {
+            seq,
+            timestamp_s: state.sim_time_s,
+            published_ns: ipc_schema::monotonic_ns(),
+            q_rad: state.q_rad,
+            dq_rad_s: state.dq_rad_s,
+            gripper: self.robot.gripper_from_finger(state.finger_m),
+            base_from_tcp: state.base_from_tcp,
+            control_type: self.locked.map(|c| c as u32).unwrap_or(0),
+            mode,
+            active_request: self.active_request(),
+            reset_id: state.reset_id,
+        }
+    }
+}

@@ -1,0 +1,259 @@
+//! Starting and stopping one instance: r2g-sim and r2g-control as child processes, a readiness
+//! check that waits until an agent could connect, and a clean stop that leaves no process and
+//! no shared-memory service behind.
+
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use ipc_schema::process;
+use ipc_schema::{CameraFrame, Mode, Qos, RobotState, Services, SimInfo};
+
+/// Where the gym pack lives: `$R2G_GYMS`, else `gyms/` of the checkout holding this binary,
+/// else `./gyms`.
+pub fn gyms_dir() -> PathBuf {
+    if let Ok(d) = std::env::var("R2G_GYMS") {
+        return PathBuf::from(d);
+    }
+    if let Ok(exe) = std::env::current_exe() {
+        // target/<profile>/r2g → the checkout root.
+        if let Some(root) = exe.parent().and_then(Path::parent).and_then(Path::parent) {
+            let g = root.join("gyms");
+            if g.is_dir() {
+                return g;
+            }
+        }
+    }
+    PathBuf::from("gyms")
+}
+
+/// Resolves a gym name, folder or scene file to a scene file.
+pub fn resolve_scene(gym: &str) -> anyhow::Result<PathBuf> {
+    let p = PathBuf::from(gym);
+    if p.is_file() {
+        return Ok(p);
+    }
+    if p.is_dir() && p.join("scene.toml").is_file() {
+        return Ok(p.join("scene.toml"));
+    }
+    let by_name = gyms_dir().join(gym).join("scene.toml");
+    if by_name.is_file() {
+        return Ok(by_name);
+    }
+    let known: Vec<String> = std::fs::read_dir(gyms_dir())
+        .map(|d| d.filter_map(|e| e.ok()).filter(|e| e.path().join("scene.toml").is_file()).map(|e| e.file_name().to_string_lossy().into_owned()).collect())
+        .unwrap_or_default();
+    bail!("no gym '{gym}': give a gym name ({}), a gym folder or a scene file", if known.is_empty() { "none found".into() } else { known.join(", ") })
+}
+
+fn sibling(name: &str) -> anyhow::Result<PathBuf> {
+    let exe = std::env::current_exe().context("locating this executable")?;
+    let dir = exe.parent().context("executable has no folder")?;
+    // Test binaries live one level deeper (target/<profile>/deps).
+    for d in [dir, dir.parent().unwrap_or(dir)] {
+        let p = d.join(name);
+        if p.is_file() {
+            return Ok(p);
+        }
+    }
+    bail!("cannot find {name} next to {} (build the workspace first: make build)", exe.display())
+}
+
+/// Options of one instance.
+#[derive(Debug, Clone)]
+pub struct UpOptions {
+    pub scene: PathBuf,
+    pub instance: String,
+    pub mode: Mode,
+    pub render_hz: f64,
+    /// Extra arguments for r2g-control (e.g. --duration-s, --stats-out).
+    pub control_args: Vec<String>,
+    pub ready_timeout: Duration,
+}
+
+/// A running instance. Dropping it stops both processes.
+pub struct Instance {
+    pub name: String,
+    pub sim: Child,
+    pub control: Child,
+}
+
+fn spawn(program: &Path, args: &[String]) -> anyhow::Result<Child> {
+    let mut cmd = Command::new(program);
+    cmd.args(args).stdin(Stdio::null());
+    // Children log to our stderr; our stdout stays for the READY line.
+    cmd.stdout(Stdio::from(std::io::stderr().as_fd_owned()?));
+    // SAFETY: prctl is async-signal-safe and touches no memory of the parent.
+    unsafe {
+        cmd.pre_exec(|| {
+            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+            Ok(())
+        });
+    }
+    cmd.spawn().with_context(|| format!("starting {}", program.display()))
+}
+
+trait StderrFd {
+    fn as_fd_owned(&self) -> anyhow::Result<std::os::fd::OwnedFd>;
+}
+
+impl StderrFd for std::io::Stderr {
+    fn as_fd_owned(&self) -> anyhow::Result<std::os::fd::OwnedFd> {
+        use std::os::fd::AsFd;
+        Ok(self.as_fd().try_clone_to_owned()?)
+    }
+}
+
+impl Instance {
+    /// Starts sim-host then runtime and waits until an agent could connect: the runtime
+    /// publishes robot state and every camera has delivered a frame.
+    pub fn up(opts: &UpOptions) -> anyhow::Result<Self> {
+        Services::new(&opts.instance)?;
+        let cleaned = ipc_schema::cleanup_dead_nodes();
+        if cleaned > 0 {
+            eprintln!("r2g: removed the shared-memory leftovers of {cleaned} dead process(es)");
+        }
+        for node in [process::control_node(&opts.instance), process::sim_node(&opts.instance)] {
+            if process::node_alive(&node) == Some(true) {
+                bail!("instance '{}' is already running ({node} is alive): stop it first, or pick another --instance", opts.instance);
+            }
+        }
+        let scene = opts.scene.display().to_string();
+        let sim = spawn(
+            &sibling("r2g-sim")?,
+            &[scene.clone(), "--instance".into(), opts.instance.clone(), "--render-hz".into(), opts.render_hz.to_string()],
+        )?;
+        let mode = if opts.mode == Mode::Lockstep { "lockstep" } else { "wall" };
+        let mut control_args = vec![scene, "--instance".into(), opts.instance.clone(), "--mode".into(), mode.into()];
+        control_args.extend(opts.control_args.iter().cloned());
+        let control = match spawn(&sibling("r2g-control")?, &control_args) {
+            Ok(c) => c,
+            Err(e) => {
+                let mut sim = sim;
+                let _ = sim.kill();
+                let _ = sim.wait();
+                return Err(e);
+            }
+        };
+        let mut inst = Self { name: opts.instance.clone(), sim, control };
+        if let Err(e) = inst.wait_ready(opts) {
+            inst.stop();
+            return Err(e);
+        }
+        Ok(inst)
+    }
+
+    fn wait_ready(&mut self, opts: &UpOptions) -> anyhow::Result<()> {
+        let services = Services::new(&opts.instance)?;
+        let node = ipc_schema::node(&format!("r2g-up-{}", opts.instance))?;
+        let robot = ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)?.subscriber_builder().create()?;
+        let info = ipc_schema::open_or_create_pubsub::<SimInfo>(&node, &services.sim_info(), Qos::STREAM)?.subscriber_builder().create()?;
+        let t0 = Instant::now();
+        let mut sim_info: Option<SimInfo> = None;
+        let mut have_state = false;
+        let mut cams: Vec<(String, iceoryx2::port::subscriber::Subscriber<iceoryx2::prelude::ipc::Service, CameraFrame, ()>, bool)> = Vec::new();
+        loop {
+            if let Some(status) = self.exited()? {
+                bail!("{status} before the instance was ready");
+            }
+            if process::stop_requested() {
+                bail!("interrupted while starting");
+            }
+            if t0.elapsed() > opts.ready_timeout {
+                bail!("instance '{}' was not ready within {:?}", opts.instance, opts.ready_timeout);
+            }
+            if sim_info.is_none() {
+                if let Some(s) = info.receive()? {
+                    let s = *s;
+                    for i in 0..s.camera_count as usize {
+                        let name = s.camera_name(i).to_string();
+                        let qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 8 };
+                        let sub = ipc_schema::open_or_create_pubsub::<CameraFrame>(&node, &services.camera(&name), qos)?.subscriber_builder().create()?;
+                        cams.push((name, sub, false));
+                    }
+                    sim_info = Some(s);
+                }
+            }
+            while robot.receive()?.is_some() {
+                have_state = true;
+            }
+            for c in cams.iter_mut() {
+                while c.1.receive()?.is_some() {
+                    c.2 = true;
+                }
+            }
+            if have_state && sim_info.is_some() && cams.iter().all(|c| c.2) {
+                return Ok(());
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+
+    /// Describes the first child that has exited, if any.
+    pub fn exited(&mut self) -> anyhow::Result<Option<String>> {
+        let describe = |who: &str, pid: u32, s: ExitStatus| {
+            use std::os::unix::process::ExitStatusExt;
+            match (s.code(), s.signal()) {
+                (Some(c), _) => format!("{who} (pid {pid}) exited with status {c}"),
+                (_, Some(sig)) => format!("{who} (pid {pid}) was killed by signal {sig}"),
+                _ => format!("{who} (pid {pid}) ended"),
+            }
+        };
+        if let Some(s) = self.sim.try_wait()? {
+            return Ok(Some(describe("r2g-sim", self.sim.id(), s)));
+        }
+        if let Some(s) = self.control.try_wait()? {
+            return Ok(Some(describe("r2g-control", self.control.id(), s)));
+        }
+        Ok(None)
+    }
+
+    /// Waits for r2g-control to end by itself (benchmarks with --duration-s).
+    pub fn wait_control(&mut self, timeout: Duration) -> anyhow::Result<ExitStatus> {
+        let t0 = Instant::now();
+        loop {
+            if let Some(s) = self.control.try_wait()? {
+                return Ok(s);
+            }
+            if t0.elapsed() > timeout {
+                bail!("r2g-control did not finish within {timeout:?}");
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// SIGTERM to both (runtime first), SIGKILL after 5 s, then removes what dead processes left.
+    pub fn stop(&mut self) {
+        for child in [&mut self.control, &mut self.sim] {
+            if matches!(child.try_wait(), Ok(None)) {
+                // SAFETY: signals a child we started and have not reaped, by pid.
+                unsafe {
+                    libc::kill(child.id() as libc::pid_t, libc::SIGTERM);
+                }
+            }
+        }
+        let t0 = Instant::now();
+        for child in [&mut self.control, &mut self.sim] {
+            loop {
+                match child.try_wait() {
+                    Ok(Some(_)) | Err(_) => break,
+                    Ok(None) if t0.elapsed() > Duration::from_secs(5) => {
+                        let _ = child.kill();
+                        let _ = child.wait();
+                        break;
+                    }
+                    Ok(None) => std::thread::sleep(Duration::from_millis(10)),
+                }
+            }
+        }
+        ipc_schema::cleanup_dead_nodes();
+    }
+}
+
+impl Drop for Instance {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}

@@ -1,0 +1,326 @@
+#![doc = include_str!("../README.md")]
+
+pub mod controller;
+pub mod launch;
+pub mod rt;
+pub mod stats;
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{bail, Context};
+use controllers::{LimiterConfig, RobotModel};
+use ipc_schema::process::{self, PeerWatch};
+use ipc_schema::{JointCommand, Mode, Qos, Reply, Request, RobotState, RuntimeInfo, Services, SimReset, SimState};
+
+pub use controller::Controller;
+pub use stats::{Histogram, TickStats};
+
+/// How r2g-control runs.
+#[derive(Debug, Clone)]
+pub struct RunConfig {
+    pub instance: String,
+    pub mode: Mode,
+    /// Scene file; only its `[robot]` table is read (URDF path and TCP link).
+    pub scene: PathBuf,
+    pub period_ns: u64,
+    /// Busy-wait this long before each deadline (0: pure sleep).
+    pub spin_ns: u64,
+    pub fifo_priority: Option<i32>,
+    pub cpu: Option<usize>,
+    /// Stop after this long (benchmarks); None runs until SIGINT/SIGTERM.
+    pub duration: Option<Duration>,
+    /// The runtime stops when no state arrives for this long in wall mode.
+    pub state_timeout: Duration,
+}
+
+/// Reads the robot of a scene file: its URDF (relative to the scene) and TCP link.
+pub fn robot_from_scene(scene: &Path) -> anyhow::Result<RobotModel> {
+    let text = std::fs::read_to_string(scene).with_context(|| format!("reading scene {}", scene.display()))?;
+    let table: toml::Table = toml::from_str(&text).with_context(|| format!("parsing scene {}", scene.display()))?;
+    let robot = table.get("robot").and_then(|r| r.as_table()).context("scene has no [robot] table")?;
+    let urdf = robot.get("urdf").and_then(|u| u.as_str()).context("scene [robot] has no urdf path")?;
+    let tcp = robot.get("tcp_link").and_then(|u| u.as_str()).unwrap_or("hand_tcp");
+    let urdf_path = scene.parent().unwrap_or(Path::new(".")).join(urdf);
+    let xml = std::fs::read_to_string(&urdf_path).with_context(|| format!("reading URDF {}", urdf_path.display()))?;
+    Ok(RobotModel::from_urdf_str(&xml, tcp, controllers::robot::PANDA_DDQ_MAX, controllers::robot::PANDA_JERK_MAX)?)
+}
+
+type Pub<T> = iceoryx2::port::publisher::Publisher<iceoryx2::prelude::ipc::Service, T, ()>;
+type Sub<T> = iceoryx2::port::subscriber::Subscriber<iceoryx2::prelude::ipc::Service, T, ()>;
+type Notifier = iceoryx2::port::notifier::Notifier<iceoryx2::prelude::ipc::Service>;
+type Listener = iceoryx2::port::listener::Listener<iceoryx2::prelude::ipc::Service>;
+
+/// Every port of the runtime, created once before the loop.
+struct Ports {
+    _node: iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+    state_sub: Sub<SimState>,
+    cmd_pub: Pub<JointCommand>,
+    reset_pub: Pub<SimReset>,
+    robot_pub: Pub<RobotState>,
+    info_pub: Pub<RuntimeInfo>,
+    req_sub: Sub<Request>,
+    reply_pub: Pub<Reply>,
+    sim_wake: Notifier,
+    agent_wake: Notifier,
+    wake: Listener,
+}
+
+impl Ports {
+    fn open(services: &Services) -> anyhow::Result<Self> {
+        let node = ipc_schema::node(&process::control_node(&services.instance))?;
+        let ps = |n: &str| n.to_string();
+        Ok(Self {
+            state_sub: ipc_schema::open_or_create_pubsub::<SimState>(&node, &ps(&services.sim_state()), Qos::STREAM)?.subscriber_builder().create()?,
+            cmd_pub: ipc_schema::open_or_create_pubsub::<JointCommand>(&node, &services.command(), Qos::STREAM)?.publisher_builder().create()?,
+            reset_pub: ipc_schema::open_or_create_pubsub::<SimReset>(&node, &services.sim_reset(), Qos::QUEUE)?.publisher_builder().create()?,
+            robot_pub: ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)?.publisher_builder().create()?,
+            info_pub: ipc_schema::open_or_create_pubsub::<RuntimeInfo>(&node, &services.runtime_info(), Qos::STREAM)?.publisher_builder().create()?,
+            req_sub: ipc_schema::open_or_create_pubsub::<Request>(&node, &services.request(), Qos::QUEUE)?.subscriber_builder().create()?,
+            reply_pub: ipc_schema::open_or_create_pubsub::<Reply>(&node, &services.reply(), Qos::QUEUE)?.publisher_builder().create()?,
+            sim_wake: ipc_schema::open_or_create_event(&node, &services.sim_wake())?.notifier_builder().create()?,
+            agent_wake: ipc_schema::open_or_create_event(&node, &services.agent_wake())?.notifier_builder().create()?,
+            wake: ipc_schema::open_or_create_event(&node, &services.control_wake())?.listener_builder().create()?,
+            _node: node,
+        })
+    }
+
+    /// Takes the newest state, if any arrived.
+    #[inline]
+    fn newest_state(&self, latest: &mut SimState) -> anyhow::Result<bool> {
+        let mut got = false;
+        while let Some(s) = self.state_sub.receive()? {
+            *latest = *s;
+            got = true;
+        }
+        Ok(got)
+    }
+
+    #[inline]
+    fn reply(&self, r: &Reply) -> anyhow::Result<()> {
+        self.reply_pub.send_copy(*r)?;
+        self.agent_wake.notify()?;
+        Ok(())
+    }
+
+    /// Serves every waiting request.
+    #[inline]
+    fn serve_requests(&self, ctl: &mut Controller) -> anyhow::Result<()> {
+        while let Some(req) = self.req_sub.receive()? {
+            let (reply, fwd) = ctl.request(&req);
+            if let Some(r) = reply {
+                self.reply(&r)?;
+            }
+            if let controller::Forward::Reset { sim_reset_id } = fwd {
+                self.reset_pub.send_copy(SimReset { id: sim_reset_id })?;
+                self.sim_wake.notify()?;
+            }
+        }
+        Ok(())
+    }
+}
+
+fn runtime_info(ctl: &Controller, mode: Mode, period_ns: u64) -> RuntimeInfo {
+    let mut i = RuntimeInfo {
+        schema: ipc_schema::SCHEMA_VERSION,
+        mode: mode as u32,
+        tick_period_ns: period_ns,
+        q_margin_rad: ctl.cfg.q_margin_rad,
+        speed_scale: ctl.cfg.speed_scale,
+        max_chunk: ctl.cfg.max_chunk as u32,
+        default_freq_hz: ctl.cfg.default_freq_hz,
+        finger_max_m: ctl.robot.finger_max_m,
+        finger_speed_m_s: ctl.robot.finger_speed_m_s,
+        ..Default::default()
+    };
+    for (j, l) in ctl.robot.joints.iter().enumerate() {
+        i.q_min_rad[j] = l.q_min_rad;
+        i.q_max_rad[j] = l.q_max_rad;
+        i.dq_max_rad_s[j] = l.dq_max_rad_s;
+        i.ddq_max_rad_s2[j] = ctl.cfg.accel_scale * l.ddq_max_rad_s2;
+    }
+    i
+}
+
+/// Runs the runtime until stopped; returns what the ticks recorded.
+pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
+    let services = Services::new(&cfg.instance)?;
+    let robot = robot_from_scene(&cfg.scene)?;
+    let dt_s = cfg.period_ns as f64 * 1e-9;
+    let mut ctl = Controller::new(robot, LimiterConfig::default(), dt_s);
+    let ports = Ports::open(&services)?;
+    let sim = PeerWatch::spawn(process::sim_node(&cfg.instance), Duration::from_secs(30));
+
+    // The first state: the sim-host republishes while idle, so this arrives within ~20 ms.
+    let mut latest = SimState::default();
+    let t0 = std::time::Instant::now();
+    while !ports.newest_state(&mut latest)? {
+        if process::stop_requested() {
+            return Ok(TickStats::default());
+        }
+        if sim.lost() || t0.elapsed() > Duration::from_secs(60) {
+            bail!("no state from r2g-sim of instance '{}': is it running?", cfg.instance);
+        }
+        let _ = ports.wake.timed_wait(|_| {}, Duration::from_millis(10));
+    }
+    let info = runtime_info(&ctl, cfg.mode, cfg.period_ns);
+    ports.info_pub.send_copy(info)?;
+
+    let stats = match cfg.mode {
+        Mode::Wall => wall_loop(cfg, &ports, &mut ctl, &sim, latest, info)?,
+        Mode::Lockstep => lockstep_loop(cfg, &ports, &mut ctl, &sim, latest, info)?,
+    };
+    Ok(stats)
+}
+
+fn wall_loop(
+    cfg: &RunConfig,
+    ports: &Ports,
+    ctl: &mut Controller,
+    sim: &PeerWatch,
+    mut latest: SimState,
+    info: RuntimeInfo,
+) -> anyhow::Result<TickStats> {
+    let rt = rt::setup(cfg.fifo_priority, cfg.cpu);
+    if let Some(w) = rt.warning() {
+        eprintln!("r2g-control: {w}");
+    }
+    let mut stats = TickStats::default();
+    let period = cfg.period_ns;
+    let start = rt::now_ns();
+    let end = cfg.duration.map(|d| start + d.as_nanos() as u64);
+    let mut deadline = start + period;
+    let mut last_state_ns = start;
+    let mut robot_seq = 0u64;
+    loop {
+        rt::sleep_until(deadline, cfg.spin_ns);
+        let woke = rt::now_ns();
+        stats.wake.record(woke.saturating_sub(deadline));
+
+        // ---- tick: no allocation, no locks, no logging ----
+        if ports.newest_state(&mut latest)? {
+            last_state_ns = woke;
+        }
+        ports.serve_requests(ctl)?;
+        let (cmd, reply) = ctl.tick(&latest);
+        ports.cmd_pub.send_copy(cmd)?;
+        ports.sim_wake.notify()?;
+        if let Some(r) = reply {
+            ports.reply(&r)?;
+        }
+        robot_seq += 1;
+        ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Wall as u32))?;
+        if robot_seq % 200 == 0 {
+            // Late subscribers get the limits from history; resend so they never wait long.
+            ports.info_pub.send_copy(info)?;
+        }
+        // ---- end of tick ----
+
+        let done = rt::now_ns();
+        stats.compute.record(done - woke);
+        stats.ticks += 1;
+        deadline += period;
+        if done > deadline {
+            stats.overruns += 1;
+            // Skip the missed deadlines rather than bursting to catch up.
+            deadline = done + period - (done - deadline) % period;
+        }
+        if process::stop_requested() || end.is_some_and(|e| done >= e) {
+            return Ok(stats);
+        }
+        if sim.lost() {
+            bail!("r2g-sim of instance '{}' stopped; the runtime stops too (arm command held at the last value)", cfg.instance);
+        }
+        if done - last_state_ns > cfg.state_timeout.as_nanos() as u64 {
+            bail!("no state from r2g-sim for {:?}; the runtime stops", cfg.state_timeout);
+        }
+    }
+}
+
+fn lockstep_loop(
+    cfg: &RunConfig,
+    ports: &Ports,
+    ctl: &mut Controller,
+    sim: &PeerWatch,
+    mut latest: SimState,
+    info: RuntimeInfo,
+) -> anyhow::Result<TickStats> {
+    let mut stats = TickStats::default();
+    let mut robot_seq = 0u64;
+    let start = std::time::Instant::now();
+    let mut last_beat = std::time::Instant::now();
+    loop {
+        if process::stop_requested() || cfg.duration.is_some_and(|d| start.elapsed() >= d) {
+            return Ok(stats);
+        }
+        if sim.lost() {
+            bail!("r2g-sim of instance '{}' stopped; the runtime stops too", cfg.instance);
+        }
+        ports.serve_requests(ctl)?;
+        if ctl.busy() {
+            // Tick k consumes state k and produces command k; the sim answers with state k+1.
+            let t = rt::now_ns();
+            let (cmd, reply) = ctl.tick(&latest);
+            stats.compute.record(rt::now_ns() - t);
+            stats.ticks += 1;
+            ports.cmd_pub.send_copy(cmd)?;
+            ports.sim_wake.notify()?;
+            let waited = std::time::Instant::now();
+            loop {
+                ports.newest_state(&mut latest)?;
+                if latest.command_seq >= cmd.seq {
+                    break;
+                }
+                if sim.lost() || process::stop_requested() {
+                    break;
+                }
+                if waited.elapsed() > Duration::from_secs(10) {
+                    bail!("r2g-sim did not answer command {} within 10 s", cmd.seq);
+                }
+                let _ = ports.wake.timed_wait(|_| {}, Duration::from_millis(5));
+            }
+            if let Some(r) = reply {
+                ports.reply(&r)?;
+            }
+            robot_seq += 1;
+            ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32))?;
+        } else {
+            // Idle: simulated time stands still until an agent asks for something.
+            ports.newest_state(&mut latest)?;
+            if last_beat.elapsed() > Duration::from_millis(20) {
+                robot_seq += 1;
+                ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32))?;
+                if robot_seq % 10 == 0 {
+                    ports.info_pub.send_copy(info)?;
+                }
+                last_beat = std::time::Instant::now();
+            }
+            let _ = ports.wake.timed_wait(|_| {}, Duration::from_millis(20));
+        }
+    }
+}
+
+/// The baseline every tick figure is compared with: the same absolute-deadline sleep and the
+/// same measurement, doing nothing else.
+pub fn baseline_loop(duration: Duration, period_ns: u64, spin_ns: u64) -> TickStats {
+    let mut stats = TickStats::default();
+    let start = rt::now_ns();
+    let end = start + duration.as_nanos() as u64;
+    let mut deadline = start + period_ns;
+    loop {
+        rt::sleep_until(deadline, spin_ns);
+        let woke = rt::now_ns();
+        stats.wake.record(woke.saturating_sub(deadline));
+        let done = rt::now_ns();
+        stats.compute.record(done - woke);
+        stats.ticks += 1;
+        deadline += period_ns;
+        if done > deadline {
+            stats.overruns += 1;
+            deadline = done + period_ns - (done - deadline) % period_ns;
+        }
+        if done >= end {
+            return stats;
+        }
+    }
+}

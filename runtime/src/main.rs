@@ -1,0 +1,81 @@
+//! r2g-control: the hard-ticked control process of one gym instance.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::{Parser, ValueEnum};
+use ipc_schema::process;
+use ipc_schema::Mode;
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum ModeArg {
+    /// 1 kHz on the wall clock (absolute deadlines on CLOCK_MONOTONIC).
+    Wall,
+    /// Advance with the simulator on simulated time, as fast as the machine allows, and only
+    /// while a request is executing.
+    Lockstep,
+}
+
+/// Control process: turns agents' action chunks into a limited 1 kHz joint command stream
+/// for r2g-sim (or a real arm). Normally started by `r2g up`, not by hand.
+#[derive(Parser, Debug)]
+#[command(version)]
+struct Args {
+    /// Scene file of the gym; its [robot] table names the URDF and TCP link.
+    scene: PathBuf,
+    #[arg(long, default_value = "default")]
+    instance: String,
+    #[arg(long, value_enum, default_value_t = ModeArg::Wall)]
+    mode: ModeArg,
+    /// Tick period in microseconds.
+    #[arg(long, default_value_t = 1000)]
+    period_us: u64,
+    /// Busy-wait this many microseconds before each deadline to cut wake-up jitter.
+    #[arg(long, default_value_t = 0)]
+    spin_us: u64,
+    /// SCHED_FIFO priority for the tick thread (0 keeps the normal scheduler).
+    #[arg(long, default_value_t = 80)]
+    fifo_priority: i32,
+    /// CPU to pin the tick thread to (default: the last one).
+    #[arg(long)]
+    cpu: Option<usize>,
+    /// Stop after this many seconds (default: run until SIGINT/SIGTERM).
+    #[arg(long)]
+    duration_s: Option<f64>,
+    /// Write the tick statistics as JSON here on exit.
+    #[arg(long)]
+    stats_out: Option<PathBuf>,
+}
+
+fn main() {
+    let args = Args::parse();
+    process::install_stop_signals();
+    process::die_with_parent();
+    let cfg = runtime::RunConfig {
+        instance: args.instance.clone(),
+        mode: match args.mode {
+            ModeArg::Wall => Mode::Wall,
+            ModeArg::Lockstep => Mode::Lockstep,
+        },
+        scene: args.scene.clone(),
+        period_ns: args.period_us.max(100) * 1000,
+        spin_ns: args.spin_us * 1000,
+        fifo_priority: (args.fifo_priority > 0).then_some(args.fifo_priority),
+        cpu: args.cpu.or_else(runtime::rt::last_cpu),
+        duration: args.duration_s.map(Duration::from_secs_f64),
+        state_timeout: Duration::from_millis(500),
+    };
+    match runtime::run(&cfg) {
+        Ok(stats) => {
+            if let Some(p) = &args.stats_out {
+                if let Err(e) = std::fs::write(p, stats.to_json().to_string()) {
+                    eprintln!("r2g-control: cannot write {}: {e}", p.display());
+                }
+            }
+        }
+        Err(e) => {
+            eprintln!("r2g-control: error: {e:#}");
+            std::process::exit(1);
+        }
+    }
+}

@@ -1,0 +1,118 @@
+//! Fixed-size latency histograms, allocated before the loop starts so recording costs a few
+//! integer operations and never allocates.
+
+/// Histogram of durations with 100 ns bins up to 10 ms and one overflow bin.
+pub struct Histogram {
+    bins: Box<[u32]>,
+    count: u64,
+    max_ns: u64,
+    sum_ns: u64,
+}
+
+const BIN_NS: u64 = 100;
+const BINS: usize = 100_000;
+
+impl Default for Histogram {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Histogram {
+    pub fn new() -> Self {
+        Self { bins: vec![0u32; BINS + 1].into_boxed_slice(), count: 0, max_ns: 0, sum_ns: 0 }
+    }
+
+    #[inline]
+    pub fn record(&mut self, ns: u64) {
+        let i = ((ns / BIN_NS) as usize).min(BINS);
+        self.bins[i] = self.bins[i].saturating_add(1);
+        self.count += 1;
+        self.sum_ns += ns;
+        self.max_ns = self.max_ns.max(ns);
+    }
+
+    pub fn count(&self) -> u64 {
+        self.count
+    }
+
+    pub fn max_us(&self) -> f64 {
+        self.max_ns as f64 / 1000.0
+    }
+
+    pub fn mean_us(&self) -> f64 {
+        if self.count == 0 {
+            0.0
+        } else {
+            self.sum_ns as f64 / self.count as f64 / 1000.0
+        }
+    }
+
+    /// The p-quantile (0..1) in microseconds, at bin resolution (upper edge of the bin).
+    pub fn quantile_us(&self, p: f64) -> f64 {
+        if self.count == 0 {
+            return 0.0;
+        }
+        let target = ((p * self.count as f64).ceil() as u64).max(1);
+        let mut acc = 0u64;
+        for (i, &n) in self.bins.iter().enumerate() {
+            acc += n as u64;
+            if acc >= target {
+                if i == BINS {
+                    return self.max_us();
+                }
+                return (((i as u64 + 1) * BIN_NS).min(self.max_ns.max(1))) as f64 / 1000.0;
+            }
+        }
+        self.max_us()
+    }
+
+    pub fn summary(&self) -> serde_json::Value {
+        serde_json::json!({
+            "count": self.count,
+            "mean_us": self.mean_us(),
+            "p50_us": self.quantile_us(0.50),
+            "p99_us": self.quantile_us(0.99),
+            "p999_us": self.quantile_us(0.999),
+            "max_us": self.max_us(),
+        })
+    }
+}
+
+/// What every tick records.
+#[derive(Default)]
+pub struct TickStats {
+    pub wake: Histogram,
+    pub compute: Histogram,
+    pub overruns: u64,
+    pub ticks: u64,
+}
+
+impl TickStats {
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "ticks": self.ticks,
+            "overruns": self.overruns,
+            "wake": self.wake.summary(),
+            "compute": self.compute.summary(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles_of_a_known_distribution() {
+        let mut h = Histogram::new();
+        for i in 1..=1000u64 {
+            h.record(i * 1000);
+        }
+        assert!((h.quantile_us(0.5) - 500.1).abs() < 0.2, "{}", h.quantile_us(0.5));
+        assert!((h.quantile_us(0.99) - 990.1).abs() < 0.2);
+        assert_eq!(h.max_us(), 1000.0);
+        h.record(u64::MAX / 2);
+        assert_eq!(h.count(), 1001);
+    }
+}

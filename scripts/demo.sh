@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# make demo: bring up pick_block_plate, drive it from Python through robo, shut it down.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+instance="demo$$"
+out=demo-out
+mkdir -p "$out"
+log=$(mktemp)
+target/release/r2g up pick_block_plate --instance "$instance" >"$log" &
+up=$!
+cleanup() { kill -TERM "$up" 2>/dev/null; wait "$up" 2>/dev/null; rm -f "$log"; }
+trap cleanup EXIT
+for _ in $(seq 1 600); do
+  grep -q "^READY" "$log" && break
+  kill -0 "$up" 2>/dev/null || { echo "demo: r2g up failed" >&2; exit 1; }
+  sleep 0.1
+done
+grep -q "^READY" "$log" || { echo "demo: r2g up was not ready within 60 s" >&2; exit 1; }
+echo "demo: $(cat "$log")"
+R2G_INSTANCE="$instance" .venv/bin/python demo/demo.py "$out"
+rc=$?
+echo "demo: images in $out/ (agentview.png, wrist.png); exit $rc"
+exit $rc

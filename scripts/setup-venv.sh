@@ -1,0 +1,12 @@
+#!/usr/bin/env bash
+# Creates .venv with the pinned Python packages and exposes the wheel's libmujoco as
+# .venv/mujoco-lib/libmujoco.so for the Rust binding to link (see .cargo/config.toml).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+[ -x .venv/bin/python ] || python3 -m venv .venv
+.venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt
+dir=$(.venv/bin/python -c 'import mujoco, os; print(os.path.dirname(mujoco.__file__))')
+lib=$(ls "$dir"/libmujoco.so.* | head -n1)
+mkdir -p .venv/mujoco-lib
+ln -sfn "$lib" .venv/mujoco-lib/libmujoco.so
+ln -sfn "$lib" ".venv/mujoco-lib/$(basename "$lib")"

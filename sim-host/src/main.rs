@@ -1,0 +1,171 @@
+//! r2g-sim: the MuJoCo sim-host of one gym instance.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Parser;
+use ipc_schema::process::{self, PeerWatch};
+use ipc_schema::{JointCommand, Qos, Services, SimInfo, SimReset, SimState};
+use sim_host::render::{self, RenderConfig, Snapshot};
+use sim_host::Sim;
+
+/// MuJoCo sim-host: steps physics once per joint command from r2g-control, publishes the
+/// measured robot state, and renders the scene's cameras into shared memory.
+/// Normally started by `r2g up`, not by hand.
+#[derive(Parser, Debug)]
+#[command(version)]
+struct Args {
+    /// Scene file (TOML) of the gym.
+    scene: PathBuf,
+    /// Instance name; every shared-memory service is prefixed with it.
+    #[arg(long, default_value = "default")]
+    instance: String,
+    /// Camera frames per second (wall clock); 0 turns rendering off.
+    #[arg(long, default_value_t = 10.0)]
+    render_hz: f64,
+    /// Write the compiled MJCF here and continue (for inspection).
+    #[arg(long)]
+    dump_mjcf: Option<PathBuf>,
+}
+
+fn main() {
+    if let Err(e) = run() {
+        eprintln!("r2g-sim: error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run() -> anyhow::Result<()> {
+    let args = Args::parse();
+    process::install_stop_signals();
+    process::die_with_parent();
+    let services = Services::new(&args.instance)?;
+    let mut sim = Sim::load(&args.scene).with_context(|| format!("loading scene {}", args.scene.display()))?;
+    if let Some(p) = &args.dump_mjcf {
+        std::fs::write(p, &sim.mjcf).with_context(|| format!("writing {}", p.display()))?;
+    }
+
+    let node = ipc_schema::node(&process::sim_node(&args.instance))?;
+    let state_pub = ipc_schema::open_or_create_pubsub::<SimState>(&node, &services.sim_state(), Qos::STREAM)?
+        .publisher_builder()
+        .create()?;
+    let cmd_sub = ipc_schema::open_or_create_pubsub::<JointCommand>(&node, &services.command(), Qos::STREAM)?
+        .subscriber_builder()
+        .create()?;
+    let reset_sub = ipc_schema::open_or_create_pubsub::<SimReset>(&node, &services.sim_reset(), Qos::QUEUE)?
+        .subscriber_builder()
+        .create()?;
+    let info_pub = ipc_schema::open_or_create_pubsub::<SimInfo>(&node, &services.sim_info(), Qos::STREAM)?
+        .publisher_builder()
+        .create()?;
+    let wake = ipc_schema::open_or_create_event(&node, &services.sim_wake())?.listener_builder().create()?;
+    let control_wake = ipc_schema::open_or_create_event(&node, &services.control_wake())?.notifier_builder().create()?;
+
+    let mut info = SimInfo { schema: ipc_schema::SCHEMA_VERSION, physics_timestep_s: sim.scene.timestep_s, ..Default::default() };
+    let render_on = args.render_hz > 0.0 && !sim.scene.cameras.is_empty();
+    if render_on {
+        info.camera_count = sim.scene.cameras.len() as u32;
+        for (i, c) in sim.scene.cameras.iter().enumerate() {
+            ipc_schema::write_str(&mut info.camera_names[i], &c.name);
+        }
+    }
+    info_pub.send_copy(info)?;
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let render_ready = Arc::new(AtomicBool::new(!render_on));
+    let snapshot = Arc::new(Mutex::new(Snapshot::default()));
+    let render_thread = if render_on {
+        let cfg = RenderConfig {
+            services: services.clone(),
+            cameras: sim.scene.cameras.iter().cloned().zip(sim.layout.cameras.iter().map(|c| c.1)).collect(),
+            base_body: sim.layout.base_body,
+            rate_hz: args.render_hz,
+        };
+        let (model, snap, st, rd) = (sim.model.clone(), snapshot.clone(), stop.clone(), render_ready.clone());
+        Some(std::thread::Builder::new().name("render".into()).spawn(move || {
+            if let Err(e) = render::run(model, snap, cfg, st, rd) {
+                eprintln!("r2g-sim: rendering stopped: {e:#}");
+            }
+        })?)
+    } else {
+        None
+    };
+
+    let control = PeerWatch::spawn(process::control_node(&args.instance), Duration::from_secs(30));
+    let mut seq = 1u64;
+    let mut reset_id = 0u64;
+    let mut last_cmd_seq = 0u64;
+    let mut snapshot_dirty = true;
+    let mut last_publish = std::time::Instant::now();
+    let mut last_info = std::time::Instant::now();
+    let publish = |sim: &Sim, seq: u64, cmd: u64, reset_id: u64| -> anyhow::Result<()> {
+        state_pub.send_copy(sim.measure(seq, cmd, reset_id))?;
+        control_wake.notify()?;
+        Ok(())
+    };
+    publish(&sim, seq, 0, 0)?;
+    eprintln!("r2g-sim: instance '{}' scene '{}' ready ({} cameras at {} Hz)", args.instance, sim.scene.name, info.camera_count, args.render_hz);
+
+    let result = loop {
+        if process::stop_requested() {
+            break Ok(());
+        }
+        if control.lost() {
+            break Err(anyhow::anyhow!("r2g-control of instance '{}' stopped; sim-host stops too", args.instance));
+        }
+        // Sleep until the runtime publishes something; the timeout keeps the checks above live.
+        let _ = wake.timed_wait(|_| {}, Duration::from_millis(20));
+        let mut stepped = false;
+        while let Some(r) = reset_sub.receive()? {
+            sim.reset();
+            reset_id = r.id;
+            seq += 1;
+            sim.reset_state_seq = seq;
+            publish(&sim, seq, last_cmd_seq, reset_id)?;
+            snapshot_dirty = true;
+        }
+        // Step once per command sample, oldest first; a stream has at most one buffered.
+        while let Some(cmd) = cmd_sub.receive()? {
+            if cmd.seq <= last_cmd_seq {
+                continue;
+            }
+            last_cmd_seq = cmd.seq;
+            sim.step(&cmd);
+            seq += 1;
+            publish(&sim, seq, cmd.seq, reset_id)?;
+            stepped = true;
+        }
+        snapshot_dirty |= stepped;
+        if !stepped && last_publish.elapsed() > Duration::from_millis(20) {
+            // Idle (lockstep between requests, or before the runtime starts): repeat the state
+            // so late subscribers see it; the runtime ignores repeats.
+            publish(&sim, seq, last_cmd_seq, reset_id)?;
+        }
+        if last_info.elapsed() > Duration::from_millis(200) {
+            // History reaches late subscribers only with a new send.
+            info_pub.send_copy(info)?;
+            last_info = std::time::Instant::now();
+        }
+        if stepped || last_publish.elapsed() > Duration::from_millis(20) {
+            last_publish = std::time::Instant::now();
+        }
+        if snapshot_dirty && render_on {
+            if let Ok(mut s) = snapshot.try_lock() {
+                s.qpos.clear();
+                s.qpos.extend_from_slice(sim.qpos());
+                s.sim_time_s = sim.time_s();
+                s.state_seq = seq;
+                snapshot_dirty = false;
+            }
+        }
+    };
+    stop.store(true, Ordering::Relaxed);
+    if let Some(t) = render_thread {
+        let _ = t.join();
+    }
+    let _ = render_ready;
+    result
+}

@@ -1,0 +1,306 @@
+//! Scene + URDF → MJCF. The robot keeps its URDF structure (one body per link, hinge/slide per
+//! joint); collision geometry is hidden (group 3), visual geometry is drawn and never collides.
+//!
+//! Actuation: per arm joint a position servo and a velocity servo, driven with the runtime's
+//! position and velocity command (a PD that tracks without lag), on bodies with gravity
+//! compensation, with the total joint torque capped at the URDF effort. The gripper is one
+//! position servo on a tendon averaging the two fingers, which an equality keeps symmetric.
+
+use std::collections::HashMap;
+use std::fmt::Write;
+
+use crate::scene::{CameraSpec, Scene, Shape};
+
+/// Names the sim-host looks up in the compiled model.
+pub const TCP_SITE: &str = "r2g_tcp";
+pub const GRIPPER_ACTUATOR: &str = "r2g_gripper";
+
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum MjcfError {
+    #[error("URDF does not parse: {0}")]
+    Urdf(String),
+    #[error("URDF geometry of link '{link}' is not supported yet: {what}")]
+    Unsupported { link: String, what: String },
+    #[error("camera '{camera}' is mounted on link '{link}', which the robot does not have")]
+    NoSuchLink { camera: String, link: String },
+    #[error("URDF has no link without a parent (no root)")]
+    NoRoot,
+    #[error("camera '{camera}': look_at equals position, or up is parallel to the view direction")]
+    BadCamera { camera: String },
+}
+
+/// Gains of the joint servos for a joint of the given effort limit.
+fn servo_gains(effort: f64) -> (f64, f64) {
+    if effort > 50.0 {
+        (4500.0, 450.0)
+    } else {
+        (2000.0, 200.0)
+    }
+}
+
+fn f3(v: [f64; 3]) -> String {
+    format!("{} {} {}", v[0], v[1], v[2])
+}
+
+fn v3(v: &urdf_rs::Vec3) -> [f64; 3] {
+    [v.0[0], v.0[1], v.0[2]]
+}
+
+/// xyaxes of a MuJoCo camera (it looks along its −z, image up along +y) aimed at `look_at`.
+fn camera_xyaxes(c: &CameraSpec, default_up: [f64; 3]) -> Option<String> {
+    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    let cross = |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+    let norm = |a: [f64; 3]| {
+        let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+        if n < 1e-9 {
+            None
+        } else {
+            Some([a[0] / n, a[1] / n, a[2] / n])
+        }
+    };
+    let fwd = norm(sub(c.look_at_m, c.position_m))?;
+    let right = norm(cross(fwd, c.up.unwrap_or(default_up)))?;
+    let up = cross(right, fwd);
+    Some(format!("{} {}", f3(right), f3(up)))
+}
+
+/// Rotation matrix of URDF roll-pitch-yaw (fixed axes x, y, z): Rz(yaw)·Ry(pitch)·Rx(roll).
+fn rpy_matrix(rpy: [f64; 3]) -> [[f64; 3]; 3] {
+    let (sr, cr) = rpy[0].sin_cos();
+    let (sp, cp) = rpy[1].sin_cos();
+    let (sy, cy) = rpy[2].sin_cos();
+    [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
+}
+
+struct Writer<'a> {
+    robot: &'a urdf_rs::Robot,
+    materials: HashMap<String, [f64; 4]>,
+    children: HashMap<String, Vec<&'a urdf_rs::Joint>>,
+    cameras_by_link: HashMap<String, Vec<&'a CameraSpec>>,
+    tcp_link: String,
+    out: String,
+}
+
+impl Writer<'_> {
+    fn geoms(&mut self, link: &urdf_rs::Link, indent: &str) -> Result<(), MjcfError> {
+        let shape = |g: &urdf_rs::Geometry| -> Result<(String, String), MjcfError> {
+            Ok(match g {
+                urdf_rs::Geometry::Box { size } => ("box".into(), f3([size.0[0] / 2.0, size.0[1] / 2.0, size.0[2] / 2.0])),
+                urdf_rs::Geometry::Cylinder { radius, length } => ("cylinder".into(), format!("{radius} {}", length / 2.0)),
+                urdf_rs::Geometry::Capsule { radius, length } => ("capsule".into(), format!("{radius} {}", length / 2.0)),
+                urdf_rs::Geometry::Sphere { radius } => ("sphere".into(), format!("{radius}")),
+                urdf_rs::Geometry::Mesh { filename, .. } => {
+                    return Err(MjcfError::Unsupported { link: link.name.clone(), what: format!("mesh {filename}") })
+                }
+            })
+        };
+        for v in &link.visual {
+            let (t, size) = shape(&v.geometry)?;
+            let rgba = v
+                .material
+                .as_ref()
+                .and_then(|m| m.color.as_ref().map(|c| c.rgba.0).or_else(|| self.materials.get(&m.name).copied()))
+                .unwrap_or([0.8, 0.8, 0.8, 1.0]);
+            writeln!(
+                self.out,
+                "{indent}<geom type=\"{t}\" size=\"{size}\" pos=\"{}\" euler=\"{}\" rgba=\"{} {} {} {}\" contype=\"0\" conaffinity=\"0\" group=\"2\" mass=\"0\"/>",
+                f3(v3(&v.origin.xyz)),
+                f3(v3(&v.origin.rpy)),
+                rgba[0], rgba[1], rgba[2], rgba[3]
+            )
+            .ok();
+        }
+        for c in &link.collision {
+            let (t, size) = shape(&c.geometry)?;
+            // Robot geoms collide with the scene (conaffinity 1) but not with each other: the
+            // runtime checks self-collision on commands before they ever reach the simulator.
+            writeln!(
+                self.out,
+                "{indent}<geom type=\"{t}\" size=\"{size}\" pos=\"{}\" euler=\"{}\" contype=\"2\" conaffinity=\"1\" group=\"3\" friction=\"1.2 0.01 0.0002\" mass=\"0\" rgba=\"0.5 0.5 0.9 0.4\"/>",
+                f3(v3(&c.origin.xyz)),
+                f3(v3(&c.origin.rpy))
+            )
+            .ok();
+        }
+        Ok(())
+    }
+
+    fn body(&mut self, link_name: &str, depth: usize) -> Result<(), MjcfError> {
+        let indent = "  ".repeat(depth + 2);
+        let Some(link) = self.robot.links.iter().find(|l| l.name == link_name) else {
+            return Ok(());
+        };
+        let i = &link.inertial;
+        if i.mass.value > 0.0 {
+            let t = &i.inertia;
+            // MJCF takes no orientation beside fullinertia: express the tensor in the body frame.
+            let r = rpy_matrix(v3(&i.origin.rpy));
+            let local = [[t.ixx, t.ixy, t.ixz], [t.ixy, t.iyy, t.iyz], [t.ixz, t.iyz, t.izz]];
+            let mut b = [[0.0; 3]; 3];
+            for (a, row) in b.iter_mut().enumerate() {
+                for (c, v) in row.iter_mut().enumerate() {
+                    *v = (0..3).map(|k| (0..3).map(|l| r[a][k] * local[k][l] * r[c][l]).sum::<f64>()).sum();
+                }
+            }
+            writeln!(
+                self.out,
+                "{indent}<inertial pos=\"{}\" mass=\"{}\" fullinertia=\"{} {} {} {} {} {}\"/>",
+                f3(v3(&i.origin.xyz)),
+                i.mass.value,
+                b[0][0], b[1][1], b[2][2], b[0][1], b[0][2], b[1][2]
+            )
+            .ok();
+        }
+        self.geoms(link, &indent)?;
+        if link_name == self.tcp_link {
+            writeln!(self.out, "{indent}<site name=\"{TCP_SITE}\" size=\"0.005\" rgba=\"1 0 0 0\"/>").ok();
+        }
+        for cam in self.cameras_by_link.remove(link_name).unwrap_or_default() {
+            let xy = camera_xyaxes(cam, [1.0, 0.0, 0.0]).ok_or_else(|| MjcfError::BadCamera { camera: cam.name.clone() })?;
+            writeln!(self.out, "{indent}<camera name=\"{}\" pos=\"{}\" xyaxes=\"{xy}\" fovy=\"{}\"/>", cam.name, f3(cam.position_m), cam.fovy_deg).ok();
+        }
+        for j in self.children.get(link_name).cloned().unwrap_or_default() {
+            writeln!(self.out, "{indent}<body name=\"{}\" pos=\"{}\" euler=\"{}\" gravcomp=\"1\">", j.child.link, f3(v3(&j.origin.xyz)), f3(v3(&j.origin.rpy))).ok();
+            let kind = match j.joint_type {
+                urdf_rs::JointType::Revolute => Some("hinge"),
+                urdf_rs::JointType::Prismatic => Some("slide"),
+                urdf_rs::JointType::Fixed => None,
+                ref other => {
+                    return Err(MjcfError::Unsupported { link: j.child.link.clone(), what: format!("joint type {other:?}") })
+                }
+            };
+            if let Some(kind) = kind {
+                let (armature, damping) = if kind == "hinge" { (0.1, 1.0) } else { (0.0, 5.0) };
+                writeln!(
+                    self.out,
+                    "{indent}  <joint name=\"{}\" type=\"{kind}\" axis=\"{}\" range=\"{} {}\" armature=\"{armature}\" damping=\"{damping}\" actuatorfrcrange=\"{} {}\"/>",
+                    j.name,
+                    f3(v3(&j.axis.xyz)),
+                    j.limit.lower,
+                    j.limit.upper,
+                    -j.limit.effort,
+                    j.limit.effort
+                )
+                .ok();
+            }
+            self.body(&j.child.link, depth + 1)?;
+            writeln!(self.out, "{indent}</body>").ok();
+        }
+        Ok(())
+    }
+}
+
+/// Compiles a scene and its robot into one MJCF document.
+pub fn compile(scene: &Scene, urdf_xml: &str, arm_joints: &[String], finger_joint: &str) -> Result<String, MjcfError> {
+    let robot = urdf_rs::read_from_string(urdf_xml).map_err(|e| MjcfError::Urdf(e.to_string()))?;
+    let child_links: Vec<&str> = robot.joints.iter().map(|j| j.child.link.as_str()).collect();
+    let root = robot.links.iter().find(|l| !child_links.contains(&l.name.as_str())).ok_or(MjcfError::NoRoot)?;
+    let mut children: HashMap<String, Vec<&urdf_rs::Joint>> = HashMap::new();
+    for j in &robot.joints {
+        children.entry(j.parent.link.clone()).or_default().push(j);
+    }
+    let mut cameras_by_link: HashMap<String, Vec<&CameraSpec>> = HashMap::new();
+    for c in scene.cameras.iter().filter(|c| c.link.is_some()) {
+        let link = c.link.clone().unwrap_or_default();
+        if !robot.links.iter().any(|l| l.name == link) {
+            return Err(MjcfError::NoSuchLink { camera: c.name.clone(), link });
+        }
+        cameras_by_link.entry(link).or_default().push(c);
+    }
+    let materials = robot
+        .materials
+        .iter()
+        .filter_map(|m| m.color.as_ref().map(|c| (m.name.clone(), c.rgba.0)))
+        .collect();
+    let mut w = Writer { robot: &robot, materials, children, cameras_by_link, tcp_link: scene.robot.tcp_link.clone(), out: String::new() };
+    let max_w = scene.cameras.iter().map(|c| c.width).max().unwrap_or(640);
+    let max_h = scene.cameras.iter().map(|c| c.height).max().unwrap_or(480);
+
+    let o = &mut w.out;
+    writeln!(o, "<mujoco model=\"{}\">", scene.name).ok();
+    writeln!(o, "  <compiler angle=\"radian\" eulerseq=\"xyz\" autolimits=\"true\"/>").ok();
+    writeln!(o, "  <option timestep=\"{}\" integrator=\"implicitfast\" cone=\"elliptic\" impratio=\"10\"/>", scene.timestep_s).ok();
+    writeln!(o, "  <visual><global offwidth=\"{max_w}\" offheight=\"{max_h}\"/><quality shadowsize=\"1024\"/><headlight ambient=\"0.35 0.35 0.35\" diffuse=\"0.5 0.5 0.5\"/></visual>").ok();
+    writeln!(o, "  <asset>\n    <texture name=\"sky\" type=\"skybox\" builtin=\"gradient\" rgb1=\"0.75 0.82 0.9\" rgb2=\"0.25 0.3 0.38\" width=\"256\" height=\"256\"/>").ok();
+    writeln!(o, "    <texture name=\"floor\" type=\"2d\" builtin=\"checker\" rgb1=\"0.42 0.44 0.46\" rgb2=\"0.32 0.34 0.36\" width=\"256\" height=\"256\"/>").ok();
+    writeln!(o, "    <material name=\"floor\" texture=\"floor\" texrepeat=\"6 6\"/>\n  </asset>").ok();
+    writeln!(o, "  <worldbody>").ok();
+    writeln!(o, "    <light name=\"key\" pos=\"0.4 -0.6 2.0\" dir=\"-0.1 0.3 -1\" diffuse=\"0.6 0.6 0.6\" castshadow=\"true\"/>").ok();
+    let floor_z = scene.table.as_ref().map(|t| t.top_center_m[2] - 0.75).unwrap_or(0.0);
+    writeln!(o, "    <geom name=\"floor\" type=\"plane\" size=\"3 3 0.1\" pos=\"0 0 {floor_z}\" material=\"floor\" contype=\"1\" conaffinity=\"3\"/>").ok();
+    if let Some(t) = &scene.table {
+        let c = t.top_center_m;
+        writeln!(
+            o,
+            "    <geom name=\"table\" type=\"box\" size=\"{} {} 0.025\" pos=\"{} {} {}\" rgba=\"{} {} {} {}\" contype=\"1\" conaffinity=\"3\" friction=\"0.8 0.005 0.0001\"/>",
+            t.size_m[0] / 2.0, t.size_m[1] / 2.0, c[0], c[1], c[2] - 0.025, t.rgba[0], t.rgba[1], t.rgba[2], t.rgba[3]
+        )
+        .ok();
+    }
+    for c in scene.cameras.iter().filter(|c| c.link.is_none()) {
+        let xy = camera_xyaxes(c, [0.0, 0.0, 1.0]).ok_or_else(|| MjcfError::BadCamera { camera: c.name.clone() })?;
+        writeln!(o, "    <camera name=\"{}\" pos=\"{}\" xyaxes=\"{xy}\" fovy=\"{}\"/>", c.name, f3(c.position_m), c.fovy_deg).ok();
+    }
+    for ob in &scene.objects {
+        let (t, size) = match ob.shape {
+            Shape::Box => ("box", ob.size_m.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(" ")),
+            Shape::Cylinder => ("cylinder", format!("{} {}", ob.size_m[0], ob.size_m[1])),
+            Shape::Capsule => ("capsule", format!("{} {}", ob.size_m[0], ob.size_m[1])),
+            Shape::Sphere => ("sphere", ob.size_m[0].to_string()),
+        };
+        let q = ob.quat_wxyz;
+        let rgba = ob.rgba;
+        writeln!(o, "    <body name=\"{}\" pos=\"{}\" quat=\"{} {} {} {}\">", ob.name, f3(ob.position_m), q[0], q[1], q[2], q[3]).ok();
+        if ob.free {
+            writeln!(o, "      <freejoint name=\"{}_free\"/>", ob.name).ok();
+        }
+        writeln!(
+            o,
+            "      <geom type=\"{t}\" size=\"{size}\" mass=\"{}\" friction=\"{} 0.01 0.0002\" rgba=\"{} {} {} {}\" contype=\"1\" conaffinity=\"3\" condim=\"4\"/>",
+            ob.mass_kg, ob.friction, rgba[0], rgba[1], rgba[2], rgba[3]
+        )
+        .ok();
+        writeln!(o, "    </body>").ok();
+    }
+    let b = scene.robot.base_position_m;
+    writeln!(o, "    <body name=\"{}\" pos=\"{}\" euler=\"0 0 {}\">", root.name, f3(b), scene.robot.base_yaw_rad).ok();
+    w.body(&root.name.clone(), 1)?;
+    let o = &mut w.out;
+    writeln!(o, "    </body>\n  </worldbody>").ok();
+
+    // The mimic joints of the gripper follow the driven finger.
+    let mimics: Vec<&urdf_rs::Joint> = robot.joints.iter().filter(|j| j.mimic.as_ref().is_some_and(|m| m.joint == finger_joint)).collect();
+    writeln!(o, "  <tendon>\n    <fixed name=\"r2g_fingers\">").ok();
+    let coef = 1.0 / (1 + mimics.len()) as f64;
+    writeln!(o, "      <joint joint=\"{finger_joint}\" coef=\"{coef}\"/>").ok();
+    for m in &mimics {
+        writeln!(o, "      <joint joint=\"{}\" coef=\"{coef}\"/>", m.name).ok();
+    }
+    writeln!(o, "    </fixed>\n  </tendon>").ok();
+    if !mimics.is_empty() {
+        writeln!(o, "  <equality>").ok();
+        for m in &mimics {
+            writeln!(o, "    <joint joint1=\"{}\" joint2=\"{finger_joint}\" solimp=\"0.95 0.99 0.001\" solref=\"0.005 1\"/>", m.name).ok();
+        }
+        writeln!(o, "  </equality>").ok();
+    }
+    writeln!(o, "  <actuator>").ok();
+    for name in arm_joints {
+        let effort = robot.joints.iter().find(|j| &j.name == name).map(|j| j.limit.effort).unwrap_or(12.0);
+        let (kp, kv) = servo_gains(effort);
+        writeln!(o, "    <position name=\"{name}_pos\" joint=\"{name}\" kp=\"{kp}\"/>").ok();
+        writeln!(o, "    <velocity name=\"{name}_vel\" joint=\"{name}\" kv=\"{kv}\"/>").ok();
+    }
+    let finger_max = robot.joints.iter().find(|j| j.name == finger_joint).map(|j| j.limit.upper).unwrap_or(0.04);
+    writeln!(
+        o,
+        "    <position name=\"{GRIPPER_ACTUATOR}\" tendon=\"r2g_fingers\" kp=\"2000\" kv=\"40\" ctrlrange=\"0 {finger_max}\" forcerange=\"-70 70\"/>\n  </actuator>\n</mujoco>"
+    )
+    .ok();
+    Ok(w.out)
+}
