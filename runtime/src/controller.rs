@@ -84,7 +84,10 @@ impl Controller {
 
     /// Takes a request. Returns an immediate reply for rejections; accepted work replies later
     /// from [`Self::tick`].
-    pub fn request(&mut self, req: &Request) -> (Option<Reply>, Forward) {
+    pub fn request(&mut self, req: &Request, state: &SimState) -> (Option<Reply>, Forward) {
+        if state.seq > 0 {
+            self.ensure_tracker(state);
+        }
         let reject = |why: Rejection| (Some(Reply::new(req.id, req.client, Status::Rejected, &why.to_string())), Forward::None);
         if self.busy() {
             return reject(Rejection::Busy);
@@ -144,18 +147,7 @@ impl Controller {
                 reply = Some(Reply::new(id, client, Status::Executed, "reset: robot and objects restored"));
             }
         }
-        if self.tracker.is_none() {
-            // First state, or first after a reset: hold exactly where the arm is.
-            let t = JointTracker::at_rest(state.q_rad, state.finger_m, &self.robot, &self.cfg);
-            self.reference = Reference {
-                q_rad: t.q_rad,
-                dq_rad_s: [0.0; N_JOINTS],
-                gripper: self.robot.gripper_from_finger(t.finger_m),
-                reached: 0,
-                finished: true,
-            };
-            self.tracker = Some(t);
-        }
+        self.ensure_tracker(state);
         if let Some(a) = self.active.as_mut() {
             a.t_s += self.dt_s;
             self.reference = self.plan.sample(a.t_s);
@@ -219,6 +211,21 @@ impl Controller {
         self.cmd_seq += 1;
         let cmd = JointCommand { seq: self.cmd_seq, state_seq: state.seq, q_rad: tracker.q_rad, dq_rad_s: tracker.dq_rad_s, finger_m: tracker.finger_m };
         (cmd, reply)
+    }
+
+    /// First state, or first after a reset: hold exactly where the arm is.
+    fn ensure_tracker(&mut self, state: &SimState) {
+        if self.tracker.is_none() {
+            let t = JointTracker::at_rest(state.q_rad, state.finger_m, &self.robot, &self.cfg);
+            self.reference = Reference {
+                q_rad: t.q_rad,
+                dq_rad_s: [0.0; N_JOINTS],
+                gripper: self.robot.gripper_from_finger(t.finger_m),
+                reached: 0,
+                finished: true,
+            };
+            self.tracker = Some(t);
+        }
     }
 
     /// The agent-facing state for the latest measurement.

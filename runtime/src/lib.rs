@@ -105,9 +105,9 @@ impl Ports {
 
     /// Serves every waiting request.
     #[inline]
-    fn serve_requests(&self, ctl: &mut Controller) -> anyhow::Result<()> {
+    fn serve_requests(&self, ctl: &mut Controller, latest: &SimState) -> anyhow::Result<()> {
         while let Some(req) = self.req_sub.receive()? {
-            let (reply, fwd) = ctl.request(&req);
+            let (reply, fwd) = ctl.request(&req, latest);
             if let Some(r) = reply {
                 self.reply(&r)?;
             }
@@ -201,7 +201,7 @@ fn wall_loop(
         if ports.newest_state(&mut latest)? {
             last_state_ns = woke;
         }
-        ports.serve_requests(ctl)?;
+        ports.serve_requests(ctl, &latest)?;
         let (cmd, reply) = ctl.tick(&latest);
         ports.cmd_pub.send_copy(cmd)?;
         ports.sim_wake.notify()?;
@@ -219,12 +219,7 @@ fn wall_loop(
         let done = rt::now_ns();
         stats.compute.record(done - woke);
         stats.ticks += 1;
-        deadline += period;
-        if done > deadline {
-            stats.overruns += 1;
-            // Skip the missed deadlines rather than bursting to catch up.
-            deadline = done + period - (done - deadline) % period;
-        }
+        deadline = next_deadline(deadline, done, period, &mut stats);
         if process::stop_requested() || end.is_some_and(|e| done >= e) {
             return Ok(stats);
         }
@@ -256,7 +251,7 @@ fn lockstep_loop(
         if sim.lost() {
             bail!("r2g-sim of instance '{}' stopped; the runtime stops too", cfg.instance);
         }
-        ports.serve_requests(ctl)?;
+        ports.serve_requests(ctl, &latest)?;
         if ctl.busy() {
             // Tick k consumes state k and produces command k; the sim answers with state k+1.
             let t = rt::now_ns();
@@ -300,6 +295,19 @@ fn lockstep_loop(
     }
 }
 
+/// The deadline after `deadline`. A tick that ended past it is an overrun: the missed
+/// deadlines are skipped rather than burst through to catch up.
+#[inline]
+fn next_deadline(deadline: u64, done: u64, period: u64, stats: &mut TickStats) -> u64 {
+    let next = deadline + period;
+    if done > next {
+        stats.overruns += 1;
+        done + period - (done - next) % period
+    } else {
+        next
+    }
+}
+
 /// The baseline every tick figure is compared with: the same absolute-deadline sleep and the
 /// same measurement, doing nothing else.
 pub fn baseline_loop(duration: Duration, period_ns: u64, spin_ns: u64) -> TickStats {
@@ -314,11 +322,7 @@ pub fn baseline_loop(duration: Duration, period_ns: u64, spin_ns: u64) -> TickSt
         let done = rt::now_ns();
         stats.compute.record(done - woke);
         stats.ticks += 1;
-        deadline += period_ns;
-        if done > deadline {
-            stats.overruns += 1;
-            deadline = done + period_ns - (done - deadline) % period_ns;
-        }
+        deadline = next_deadline(deadline, done, period_ns, &mut stats);
         if done >= end {
             return stats;
         }

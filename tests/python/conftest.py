@@ -1,0 +1,68 @@
+"""Fixtures that start real `r2g up` instances and always stop them, by pid."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+R2G = ROOT / "target" / "release" / "r2g"
+sys.path.insert(0, str(Path(__file__).parent))
+
+
+class Instance:
+    def __init__(self, name: str, mode: str) -> None:
+        if not R2G.is_file():
+            raise RuntimeError(f"{R2G} missing: run `make build` first")
+        self.name = name
+        self.proc = subprocess.Popen(
+            [str(R2G), "up", "pick_block_plate", "--instance", name, "--mode", mode, "--render-hz", "10"],
+            stdout=subprocess.PIPE,
+            stdin=subprocess.DEVNULL,
+            text=True,
+        )
+        deadline = time.monotonic() + 90
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if line.strip() != f"READY {name}" or time.monotonic() > deadline:
+            self.stop()
+            raise RuntimeError(f"r2g up did not get ready: {line!r}")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def _instance(mode: str, tag: str) -> Iterator[Instance]:
+    inst = Instance(f"py{os.getpid()}{tag}", mode)
+    previous = os.environ.get("R2G_INSTANCE")
+    os.environ["R2G_INSTANCE"] = inst.name
+    try:
+        yield inst
+    finally:
+        inst.stop()
+        if previous is None:
+            os.environ.pop("R2G_INSTANCE", None)
+        else:
+            os.environ["R2G_INSTANCE"] = previous
+
+
+@pytest.fixture(scope="module")
+def wall() -> Iterator[Instance]:
+    yield from _instance("wall", "w")
+
+
+@pytest.fixture(scope="module")
+def lockstep() -> Iterator[Instance]:
+    yield from _instance("lockstep", "l")

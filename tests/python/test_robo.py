@@ -1,0 +1,151 @@
+"""The robo contract against live instances: real processes, real shared memory, real MuJoCo."""
+from __future__ import annotations
+
+import math
+import os
+
+import pytest
+
+import robo
+from pngdecode import decode
+
+HOME = [0.0, -0.7853982, 0.0, -2.3561945, 0.0, 1.5707963, 0.7853982]
+
+
+def ramp(start: list[float], goal: list[float], gripper: float, steps: int = 15) -> list[list[float]]:
+    return [[s + (g - s) * (k + 1) / steps for s, g in zip(start, goal)] + [gripper] for k in range(steps)]
+
+
+def feedback() -> dict:
+    return robo.get_state([])["control_feedback"]
+
+
+def test_arm_reaches_joint_targets(wall) -> None:
+    assert robo.reset() == 1
+    current = robo.get_state([])["joint"]
+    for goal in ([0.4, -0.5, 0.1, -2.0, 0.0, 1.6, 0.6], [-0.2, -0.1, -0.1, -2.4, 0.2, 2.1, 1.0]):
+        assert robo.post_actions({"actions": ramp(current, goal, -1.0), "type": "joint", "freq": ""}) == 1, feedback()
+        state = robo.get_state([])
+        assert max(abs(a - b) for a, b in zip(state["joint"], goal)) < 0.01
+        assert state["control_feedback"]["status"] == "executed"
+        assert state["control_feedback"]["executed"] == 15
+        current = goal
+
+
+def test_both_images_decode_at_640x480_and_show_the_scene(wall) -> None:
+    state = robo.get_state()
+    assert set(state["image"]) == {"agentview", "wrist"}
+    for name, png in state["image"].items():
+        w, h, ch, px = decode(png)
+        assert (w, h, ch) == (640, 480, 3), name
+        # Not a flat frame: many distinct colours, and a real spread of brightness.
+        colours = {px[i : i + 3] for i in range(0, len(px), 3 * 97)}
+        lum = [px[i] + px[i + 1] + px[i + 2] for i in range(0, len(px), 3 * 31)]
+        mean = sum(lum) / len(lum)
+        std = math.sqrt(sum((v - mean) ** 2 for v in lum) / len(lum))
+        assert len(colours) > 200, (name, len(colours))
+        assert std > 20, (name, std)
+        # The red block is somewhere in both views.
+        red = sum(1 for i in range(0, len(px), 3) if px[i] > 150 and px[i + 1] < 80 and px[i + 2] < 80)
+        assert red > 30, (name, red)
+    k = state["camera_intrinsics"]["agentview"]
+    assert (k["width"], k["height"], k["cx"], k["cy"]) == (640, 480, 320.0, 240.0)
+    assert len(state["camera_extrinsics"]["wrist"]) == 4
+
+
+def test_state_fields_follow_the_contract(wall) -> None:
+    s = robo.get_state([])
+    assert len(s["joint"]) == 7 and len(s["ee_pose"]) == 6 and len(s["gripper"]) == 1
+    assert -1.0 <= s["gripper"][0] <= 1.0
+    assert s["image"] == {}
+    assert s["timestamp"] > 0
+    safety = s["effective_safety"]
+    assert safety["joint_position_max_rad"][3] == pytest.approx(-0.0698)
+    assert safety["default_freq_hz"] == 20.0
+
+
+def test_camera_selection_and_resizing(wall) -> None:
+    only = robo.get_state("wrist")
+    assert set(only["image"]) == {"wrist"}
+    small = robo.get_state({"agentview": (320, 240)})
+    w, h, _, _ = decode(small["image"]["agentview"])
+    assert (w, h) == (320, 240)
+    assert small["camera_intrinsics"]["agentview"]["fx"] == pytest.approx(only_fx_half(), rel=1e-6)
+    with pytest.raises(ValueError, match="unknown camera 'front'"):
+        robo.get_state("front")
+    with pytest.raises(TypeError):
+        robo.get_state(42)
+
+
+def only_fx_half() -> float:
+    return robo.get_state("agentview")["camera_intrinsics"]["agentview"]["fx"] / 2
+
+
+@pytest.mark.parametrize(
+    "cmd, reason",
+    [
+        ({"actions": [[0.0] * 7], "type": "joint", "freq": ""}, "has 7 values; a joint waypoint has 8"),
+        ({"actions": [HOME[:3] + [float("nan")] + HOME[4:] + [0.0]], "type": "joint", "freq": ""}, "not a finite number"),
+        ({"actions": [HOME[:3] + [0.3] + HOME[4:] + [0.0]], "type": "joint", "freq": ""}, "joint 4 = 0.3000 rad is outside"),
+        ({"actions": [HOME + [2.0]], "type": "joint", "freq": ""}, "gripper = 2"),
+        ({"actions": [HOME + [0.0]], "type": "cartesian", "freq": ""}, "type \"cartesian\" is unknown"),
+        ({"actions": [HOME + [0.0]], "type": "joint", "freq": "fast"}, "is not a number"),
+        ({"actions": [HOME + [0.0]], "type": "joint", "freq": "", "speed": 3}, "unknown key 'speed'"),
+        ({"actions": [], "type": "joint", "freq": ""}, "actions is empty"),
+        ({"actions": [HOME + [0.0]] * 300, "type": "joint", "freq": ""}, "at most 256"),
+        ("move please", "expects a dict"),
+    ],
+)
+def test_bad_commands_are_rejected_with_a_reason_and_nothing_moves(wall, cmd, reason) -> None:
+    before = robo.get_state([])["joint"]
+    assert robo.post_actions(cmd) == 0
+    fb = feedback()
+    assert fb["status"] == "rejected"
+    assert reason in fb["reason"], fb["reason"]
+    after = robo.get_state([])["joint"]
+    assert max(abs(a - b) for a, b in zip(before, after)) < 1e-3
+
+
+def test_control_type_is_fixed_per_episode(wall) -> None:
+    assert robo.reset() == 1
+    ee = robo.get_state([])["ee_pose"]
+    assert robo.post_actions({"actions": [ee + [-1.0]], "type": "ee_pose", "freq": ""}) == 0
+    assert "not available" in feedback()["reason"]
+    here = robo.get_state([])["joint"]
+    assert robo.post_actions({"actions": [here + [-1.0]], "type": "joint", "freq": ""}) == 1
+
+
+def test_reset_restores_the_initial_pose(wall) -> None:
+    start = robo.get_state([])["joint"]
+    goal = [0.5, -0.3, 0.0, -2.0, 0.0, 1.8, 0.785]
+    assert robo.post_actions({"actions": ramp(start, goal, 1.0), "type": "joint", "freq": ""}) == 1
+    assert robo.get_state([])["gripper"][0] > 0.9
+    assert robo.reset() == 1
+    s = robo.get_state([])
+    assert max(abs(a - b) for a, b in zip(s["joint"], HOME)) < 0.01
+    assert s["gripper"][0] < -0.9
+    assert feedback()["reason"].startswith("reset")
+
+
+def test_lockstep_is_deterministic(lockstep) -> None:
+    def episode() -> list[float]:
+        assert robo.reset() == 1
+        goal = [0.3, -0.4, 0.2, -2.1, 0.1, 1.9, 0.5]
+        assert robo.post_actions({"actions": ramp(HOME, goal, 1.0, 12), "type": "joint", "freq": ""}) == 1
+        s = robo.get_state([])
+        return s["joint"] + s["ee_pose"] + s["gripper"] + [s["timestamp"]]
+
+    first, second = episode(), episode()
+    assert first == second  # bit-identical, not merely close
+    assert robo.get_state([])["mode"] == "lockstep"
+
+
+def test_a_missing_instance_is_a_connection_error_with_the_fix() -> None:
+    previous = os.environ.get("R2G_INSTANCE")
+    os.environ["R2G_INSTANCE"] = "nobody-runs-this"
+    try:
+        with pytest.raises(ConnectionError, match="r2g up <gym> --instance nobody-runs-this"):
+            robo.get_state()
+    finally:
+        if previous is not None:
+            os.environ["R2G_INSTANCE"] = previous

@@ -1,0 +1,92 @@
+//! Killing any one process stops the others cleanly, leaves no orphan, and leaves nothing that
+//! blocks the next `r2g up` of the same instance.
+
+use std::time::Duration;
+
+use integration_tests::{become_subreaper, instance, running, sigkill, wait_gone, Up};
+
+const GYM: &str = "pick_block_plate";
+
+fn killing_a_child_stops_the_instance(victim: &str, other: &str, tag: &str) {
+    become_subreaper();
+    let name = instance(tag);
+    let mut up = Up::start(GYM, &name, &[]);
+    let victim_pid = up.child_pid(victim);
+    let other_pid = up.child_pid(other);
+    sigkill(victim_pid);
+    let code = up.wait_exit(Duration::from_secs(20)).expect("r2g up must stop after its child was killed");
+    assert_eq!(code, Some(1), "r2g up exits 1 when a child dies");
+    let log = up.stderr_lines.join("\n");
+    assert!(log.contains(&format!("{victim} (pid {victim_pid}) was killed by signal 9")), "{log}");
+    assert!(wait_gone(other_pid, Duration::from_secs(10)), "{other} (pid {other_pid}) still running");
+    assert!(!running(victim_pid));
+    drop(up);
+    // The same instance starts again: nothing stale blocks it.
+    let again = Up::start(GYM, &name, &[]);
+    drop(again);
+}
+
+#[test]
+fn sigkill_of_the_sim_host_stops_the_runtime_and_up_restarts() {
+    killing_a_child_stops_the_instance("r2g-sim", "r2g-control", "ks");
+}
+
+#[test]
+fn sigkill_of_the_runtime_stops_the_sim_host_and_up_restarts() {
+    killing_a_child_stops_the_instance("r2g-control", "r2g-sim", "kc");
+}
+
+#[test]
+fn sigkill_of_the_supervisor_leaves_no_orphans_and_up_restarts() {
+    become_subreaper();
+    let name = instance("ku");
+    let up = Up::start(GYM, &name, &[]);
+    let sim = up.child_pid("r2g-sim");
+    let control = up.child_pid("r2g-control");
+    sigkill(up.child.id() as i32);
+    assert!(wait_gone(sim, Duration::from_secs(10)), "r2g-sim outlived its supervisor");
+    assert!(wait_gone(control, Duration::from_secs(10)), "r2g-control outlived its supervisor");
+    drop(up);
+    let again = Up::start(GYM, &name, &[]);
+    drop(again);
+}
+
+#[test]
+fn a_second_up_of_a_running_instance_is_refused_clearly() {
+    let name = instance("dup");
+    let _first = Up::start(GYM, &name, &[]);
+    let out = std::process::Command::new(integration_tests::r2g())
+        .args(["up", GYM, "--instance", &name])
+        .output()
+        .expect("run r2g up");
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("already running"), "{err}");
+}
+
+#[test]
+fn bad_input_to_up_is_a_clear_error() {
+    let out = std::process::Command::new(integration_tests::r2g()).args(["up", "no_such_gym"]).output().expect("run");
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("no gym 'no_such_gym'") && err.contains("pick_block_plate"), "{err}");
+    let out = std::process::Command::new(integration_tests::r2g()).args(["up", GYM, "--instance", "a/b"]).output().expect("run");
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("instance name"));
+}
+
+#[test]
+fn a_malformed_scene_is_refused_with_its_problem() {
+    let dir = std::env::temp_dir().join(format!("r2g-bad-scene-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("tmp dir");
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, "name = \"x\"\n[robot]\nurdf = \"nope.urdf\"\ninitial_joints_rad = [0, 0, 0]\n").expect("write");
+    let out = std::process::Command::new(integration_tests::r2g())
+        .args(["up", scene.to_str().expect("utf8"), "--instance", &instance("bad")])
+        .output()
+        .expect("run");
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("initial_joints_rad") || err.contains("invalid length"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
