@@ -59,10 +59,11 @@ pub fn run(gym: &str, seconds: f64) -> anyhow::Result<Value> {
             format!("{:.1}", flat(s, "/compute/p99_us")),
             format!("{:.1}", flat(s, "/compute/max_us")),
             format!("{}", s["overruns"]),
+            s.get("tick_allocations").map(|v| v.to_string()).unwrap_or_else(|| "-".into()),
         ]
     };
     crate::print_table(
-        &["loop", "ticks", "wake p50 µs", "p99", "p99.9", "max", "compute p50 µs", "p99", "max", "overruns"],
+        &["loop", "ticks", "wake p50 µs", "p99", "p99.9", "max", "compute p50 µs", "p99", "max", "overruns", "allocs in tick"],
         &[row("runtime", &rt), row("baseline", &base)],
     );
     let summary = |s: &Value| {
@@ -76,6 +77,8 @@ pub fn run(gym: &str, seconds: f64) -> anyhow::Result<Value> {
             "compute_p50_us": flat(s, "/compute/p50_us"),
             "compute_p99_us": flat(s, "/compute/p99_us"),
             "compute_max_us": flat(s, "/compute/max_us"),
+            "tick_allocations": s.get("tick_allocations"),
+            "tick_pool_allocations": s.get("tick_pool_allocations"),
         })
     };
     let out = json!({

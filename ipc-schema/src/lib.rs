@@ -202,6 +202,15 @@ impl Reply {
         write_str(&mut r.reason, reason);
         r
     }
+    /// Like [`Reply::new`], formatting the reason straight into the fixed buffer (no allocation;
+    /// used on the tick path).
+    pub fn formatted(id: u64, client: u64, status: Status, reason: core::fmt::Arguments<'_>) -> Self {
+        let mut r = Self { id, client, status: status as u32, executed: 0, final_joint_error_rad: 0.0, reason: [0; REASON_LEN] };
+        let mut w = FixedWriter { buf: &mut r.reason, len: 0 };
+        let _ = core::fmt::write(&mut w, reason);
+        r
+    }
+
     pub fn reason_str(&self) -> &str {
         read_str(&self.reason)
     }
@@ -308,6 +317,25 @@ pub struct CameraFrame {
     pub rgb: [u8; MAX_IMAGE_WIDTH * MAX_IMAGE_HEIGHT * 3],
     /// Row-major depth in metres, `width × height` used when `has_depth`.
     pub depth_m: [f32; MAX_IMAGE_WIDTH * MAX_IMAGE_HEIGHT],
+}
+
+/// Writes formatted text into a fixed buffer, dropping what does not fit (at a char boundary).
+struct FixedWriter<'a> {
+    buf: &'a mut [u8],
+    len: usize,
+}
+
+impl core::fmt::Write for FixedWriter<'_> {
+    fn write_str(&mut self, s: &str) -> core::fmt::Result {
+        let room = self.buf.len() - self.len;
+        let mut n = s.len().min(room);
+        while !s.is_char_boundary(n) {
+            n -= 1;
+        }
+        self.buf[self.len..self.len + n].copy_from_slice(&s.as_bytes()[..n]);
+        self.len += n;
+        Ok(())
+    }
 }
 
 /// Copies `s` into a NUL-padded byte field, cutting at a UTF-8 boundary if it is too long.
@@ -564,6 +592,14 @@ mod tests {
         assert_eq!(read_str(&buf), "héll");
         write_str(&mut buf, "ab");
         assert_eq!(read_str(&buf), "ab");
+    }
+
+    #[test]
+    fn formatted_reasons_fit_the_buffer() {
+        let r = Reply::formatted(1, 2, Status::Rejected, format_args!("joint {} off by {:.2}", 4, 0.5));
+        assert_eq!(r.reason_str(), "joint 4 off by 0.50");
+        let long = Reply::formatted(1, 2, Status::Rejected, format_args!("{}", "é".repeat(200)));
+        assert!(long.reason_str().len() <= REASON_LEN && long.reason_str().chars().all(|c| c == 'é'));
     }
 
     #[test]

@@ -88,7 +88,7 @@ impl Controller {
         if state.seq > 0 {
             self.ensure_tracker(state);
         }
-        let reject = |why: Rejection| (Some(Reply::new(req.id, req.client, Status::Rejected, &why.to_string())), Forward::None);
+        let reject = |why: Rejection| (Some(Reply::formatted(req.id, req.client, Status::Rejected, format_args!("{why}"))), Forward::None);
         if self.busy() {
             return reject(Rejection::Busy);
         }
@@ -130,23 +130,36 @@ impl Controller {
                 }
             }
             other => {
-                let msg = format!("unknown request kind {other}");
-                (Some(Reply::new(req.id, req.client, Status::Rejected, &msg)), Forward::None)
+                let r = Reply::formatted(req.id, req.client, Status::Rejected, format_args!("unknown request kind {other}"));
+                (Some(r), Forward::None)
             }
         }
     }
 
+    /// The simulator's reset id the runtime waits for, if a reset is in flight.
+    pub fn pending_reset(&self) -> Option<u64> {
+        self.pending_reset.map(|r| r.2)
+    }
+
+    /// Finishes a pending reset once `state` shows it: the arm is held where the reset put it,
+    /// the control type unlocks, and nothing of the previous episode carries over.
+    pub fn complete_reset(&mut self, state: &SimState) -> Option<Reply> {
+        let (id, client, sim_id) = self.pending_reset?;
+        if state.reset_id != sim_id {
+            return None;
+        }
+        self.tracker = None;
+        self.locked = None;
+        self.pending_reset = None;
+        self.finger_prev = state.finger_m;
+        self.finger_still_ticks = 0;
+        self.ensure_tracker(state);
+        Some(Reply::new(id, client, Status::Executed, "reset: robot and objects restored"))
+    }
+
     /// One tick: the command to send and, when a request just finished, its reply.
     pub fn tick(&mut self, state: &SimState) -> (JointCommand, Option<Reply>) {
-        let mut reply = None;
-        if let Some((id, client, sim_id)) = self.pending_reset {
-            if state.reset_id == sim_id {
-                self.tracker = None;
-                self.locked = None;
-                self.pending_reset = None;
-                reply = Some(Reply::new(id, client, Status::Executed, "reset: robot and objects restored"));
-            }
-        }
+        let mut reply = self.complete_reset(state);
         self.ensure_tracker(state);
         if let Some(a) = self.active.as_mut() {
             a.t_s += self.dt_s;
@@ -188,11 +201,11 @@ impl Controller {
                     let timed_out = a.t_s - since_s > SETTLE_TIMEOUT_S;
                     if (err < SETTLE_TOL_RAD && !moving && finger_done) || timed_out {
                         let mut r = if timed_out {
-                            let why = format!(
+                            let why = format_args!(
                                 "executed; the arm stopped {err:.4} rad from the last target at joint {} (blocked by contact?)",
                                 worst + 1
                             );
-                            Reply::new(a.id, a.client, Status::Executed, &why)
+                            Reply::formatted(a.id, a.client, Status::Executed, why)
                         } else {
                             Reply::new(a.id, a.client, Status::Executed, "executed")
                         };

@@ -1,5 +1,6 @@
 #![doc = include_str!("../README.md")]
 
+pub mod alloc_count;
 pub mod controller;
 pub mod launch;
 pub mod rt;
@@ -103,20 +104,22 @@ impl Ports {
         Ok(())
     }
 
-    /// Serves every waiting request.
+    /// Serves every waiting request. Returns true when replies went out and agents need waking.
     #[inline]
-    fn serve_requests(&self, ctl: &mut Controller, latest: &SimState) -> anyhow::Result<()> {
+    fn serve_requests(&self, ctl: &mut Controller, latest: &SimState) -> anyhow::Result<bool> {
+        let mut replied = false;
         while let Some(req) = self.req_sub.receive()? {
             let (reply, fwd) = ctl.request(&req, latest);
             if let Some(r) = reply {
-                self.reply(&r)?;
+                self.reply_pub.send_copy(r)?;
+                replied = true;
             }
             if let controller::Forward::Reset { sim_reset_id } = fwd {
                 self.reset_pub.send_copy(SimReset { id: sim_reset_id })?;
                 self.sim_wake.notify()?;
             }
         }
-        Ok(())
+        Ok(replied)
     }
 }
 
@@ -163,6 +166,14 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
         }
         let _ = ports.wake.timed_wait(|_| {}, Duration::from_millis(10));
     }
+    // The sim-host's listener exists once it has published: register it now rather than in the
+    // first tick's notify (which would allocate there).
+    {
+        use iceoryx2::port::update_connections::UpdateConnections;
+        ports.sim_wake.update_connections()?;
+        ports.cmd_pub.update_connections()?;
+        ports.reset_pub.update_connections()?;
+    }
     let info = runtime_info(&ctl, cfg.mode, cfg.period_ns);
     ports.info_pub.send_copy(info)?;
 
@@ -198,23 +209,32 @@ fn wall_loop(
         stats.wake.record(woke.saturating_sub(deadline));
 
         // ---- tick: no allocation, no locks, no logging ----
+        let scope = alloc_count::TickScope::enter();
         if ports.newest_state(&mut latest)? {
             last_state_ns = woke;
         }
-        ports.serve_requests(ctl, &latest)?;
+        let rejected = ports.serve_requests(ctl, &latest)?;
         let (cmd, reply) = ctl.tick(&latest);
         ports.cmd_pub.send_copy(cmd)?;
         ports.sim_wake.notify()?;
-        if let Some(r) = reply {
-            ports.reply(&r)?;
-        }
+        // The state first: an agent woken by the reply must already see where the arm is.
         robot_seq += 1;
         ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Wall as u32))?;
+        let wake_agents = rejected || reply.is_some();
+        if let Some(r) = reply {
+            ports.reply_pub.send_copy(r)?;
+        }
         if robot_seq % 200 == 0 {
             // Late subscribers get the limits from history; resend so they never wait long.
             ports.info_pub.send_copy(info)?;
         }
+        drop(scope);
         // ---- end of tick ----
+        // Agents come and go, and iceoryx2 registers a new listener inside `notify` (one
+        // allocation per new agent), so their wake-up follows the tick instead of joining it.
+        if wake_agents {
+            ports.agent_wake.notify()?;
+        }
 
         let done = rt::now_ns();
         stats.compute.record(done - woke);
@@ -251,8 +271,20 @@ fn lockstep_loop(
         if sim.lost() {
             bail!("r2g-sim of instance '{}' stopped; the runtime stops too", cfg.instance);
         }
-        ports.serve_requests(ctl, &latest)?;
-        if ctl.busy() {
+        if ports.serve_requests(ctl, &latest)? {
+            ports.agent_wake.notify()?;
+        }
+        if let Some(sim_id) = ctl.pending_reset() {
+            // A reset takes no tick: wait for the state the simulator publishes right after it,
+            // so every episode starts from the same state at the same simulated time.
+            wait_for_state(ports, sim, &mut latest, |s| s.reset_id == sim_id)?;
+            let reply = ctl.complete_reset(&latest);
+            robot_seq += 1;
+            ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32))?;
+            if let Some(r) = reply {
+                ports.reply(&r)?;
+            }
+        } else if ctl.busy() {
             // Tick k consumes state k and produces command k; the sim answers with state k+1.
             let t = rt::now_ns();
             let (cmd, reply) = ctl.tick(&latest);
@@ -260,25 +292,12 @@ fn lockstep_loop(
             stats.ticks += 1;
             ports.cmd_pub.send_copy(cmd)?;
             ports.sim_wake.notify()?;
-            let waited = std::time::Instant::now();
-            loop {
-                ports.newest_state(&mut latest)?;
-                if latest.command_seq >= cmd.seq {
-                    break;
-                }
-                if sim.lost() || process::stop_requested() {
-                    break;
-                }
-                if waited.elapsed() > Duration::from_secs(10) {
-                    bail!("r2g-sim did not answer command {} within 10 s", cmd.seq);
-                }
-                let _ = ports.wake.timed_wait(|_| {}, Duration::from_millis(5));
-            }
+            wait_for_state(ports, sim, &mut latest, |s| s.command_seq >= cmd.seq)?;
+            robot_seq += 1;
+            ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32))?;
             if let Some(r) = reply {
                 ports.reply(&r)?;
             }
-            robot_seq += 1;
-            ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32))?;
         } else {
             // Idle: simulated time stands still until an agent asks for something.
             ports.newest_state(&mut latest)?;
@@ -292,6 +311,24 @@ fn lockstep_loop(
             }
             let _ = ports.wake.timed_wait(|_| {}, Duration::from_millis(20));
         }
+    }
+}
+
+/// Lockstep: takes states until one satisfies `done`; gives up if the simulator dies or is silent.
+fn wait_for_state(ports: &Ports, sim: &PeerWatch, latest: &mut SimState, done: impl Fn(&SimState) -> bool) -> anyhow::Result<()> {
+    let waited = std::time::Instant::now();
+    loop {
+        ports.newest_state(latest)?;
+        if done(latest) || process::stop_requested() {
+            return Ok(());
+        }
+        if sim.lost() {
+            bail!("r2g-sim stopped while the runtime waited for it");
+        }
+        if waited.elapsed() > Duration::from_secs(10) {
+            bail!("r2g-sim did not answer within 10 s");
+        }
+        let _ = ports.wake.timed_wait(|_| {}, Duration::from_millis(5));
     }
 }
 

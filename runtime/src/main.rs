@@ -47,8 +47,15 @@ struct Args {
     stats_out: Option<PathBuf>,
 }
 
+/// Counts allocations made inside ticks; the figure is in the tick statistics.
+#[global_allocator]
+static ALLOC: runtime::alloc_count::CountingAlloc = runtime::alloc_count::CountingAlloc;
+
 fn main() {
     let args = Args::parse();
+    if std::env::var_os("R2G_ABORT_ON_TICK_ALLOC").is_some_and(|v| v == "1") {
+        runtime::alloc_count::ABORT_ON_SYSTEM_ALLOC.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
     process::install_stop_signals();
     process::die_with_parent();
     let cfg = runtime::RunConfig {

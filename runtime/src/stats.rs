@@ -93,6 +93,8 @@ impl TickStats {
         serde_json::json!({
             "ticks": self.ticks,
             "overruns": self.overruns,
+            "tick_allocations": crate::alloc_count::tick_allocations(),
+            "tick_pool_allocations": crate::alloc_count::tick_pool_allocations(),
             "wake": self.wake.summary(),
             "compute": self.compute.summary(),
         })
