@@ -27,7 +27,7 @@ build: venv
 	cargo build --release --workspace --locked
 
 robo: build
-	VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH \
+	PYO3_BUILD_EXTENSION_MODULE=1 VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH \
 	  $(VENV)/bin/maturin develop --release --locked -q -m agent-host/Cargo.toml
 
 bench-tick: build

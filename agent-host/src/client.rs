@@ -53,7 +53,13 @@ pub struct Feedback {
 
 impl Default for Feedback {
     fn default() -> Self {
-        Self { status: "none", reason: "no command sent yet".into(), executed: 0, request_id: 0, final_joint_error_rad: 0.0 }
+        Self {
+            status: "none",
+            reason: "no command sent yet".into(),
+            executed: 0,
+            request_id: 0,
+            final_joint_error_rad: 0.0,
+        }
     }
 }
 
@@ -147,7 +153,9 @@ impl Client {
                 break *s;
             }
             if t0.elapsed() > Duration::from_secs(3) {
-                return Err(RoboError::Ipc(format!("the sim-host of instance '{instance}' published no camera list within 3 s")));
+                return Err(RoboError::Ipc(format!(
+                    "the sim-host of instance '{instance}' published no camera list within 3 s"
+                )));
             }
             std::thread::sleep(Duration::from_millis(5));
         };
@@ -219,7 +227,11 @@ impl Client {
     /// falls back to the newest frame after `wait`.
     pub fn frame(&mut self, name: &str, not_before_s: f64, wait: Duration) -> Result<Frame, RoboError> {
         let Some(i) = self.cameras.iter().position(|c| c.0 == name) else {
-            let known = if self.cameras.is_empty() { "no cameras".to_string() } else { format!("cameras {}", self.camera_names().join(", ")) };
+            let known = if self.cameras.is_empty() {
+                "no cameras".to_string()
+            } else {
+                format!("cameras {}", self.camera_names().join(", "))
+            };
             return Err(RoboError::UnknownCamera { name: name.into(), known });
         };
         let t0 = Instant::now();
@@ -306,7 +318,13 @@ impl Client {
 
     /// Records a rejection that never left this process.
     pub fn reject_locally(&mut self, reason: String) -> i32 {
-        self.feedback = Feedback { status: Status::Rejected.name(), reason, executed: 0, request_id: 0, final_joint_error_rad: 0.0 };
+        self.feedback = Feedback {
+            status: Status::Rejected.name(),
+            reason,
+            executed: 0,
+            request_id: 0,
+            final_joint_error_rad: 0.0,
+        };
         0
     }
 
@@ -323,9 +341,15 @@ impl Client {
     }
 
     /// Sends a chunk of absolute targets and blocks until it executed or failed.
-    pub fn post(&mut self, control: ControlType, freq_hz: f64, actions: &[[f64; WAYPOINT_LEN]]) -> Result<i32, RoboError> {
+    pub fn post(
+        &mut self,
+        control: ControlType,
+        freq_hz: f64,
+        actions: &[[f64; WAYPOINT_LEN]],
+    ) -> Result<i32, RoboError> {
         if actions.len() > MAX_CHUNK {
-            return Ok(self.reject_locally(format!("actions has {} waypoints, at most {MAX_CHUNK} are accepted", actions.len())));
+            return Ok(self
+                .reject_locally(format!("actions has {} waypoints, at most {MAX_CHUNK} are accepted", actions.len())));
         }
         let id = self.send(|r| {
             r.kind = RequestKind::Chunk as u32;

@@ -71,19 +71,23 @@ fn parse_cameras(arg: Option<&Bound<'_, PyAny>>, all: &[String]) -> PyResult<Cam
     if let Ok(d) = arg.cast::<PyDict>() {
         let mut out = Vec::new();
         for (k, v) in d.iter() {
-            let name: String = k.extract().map_err(|_| PyTypeError::new_err("cameras dict keys must be camera names (str)"))?;
+            let name: String =
+                k.extract().map_err(|_| PyTypeError::new_err("cameras dict keys must be camera names (str)"))?;
             let size: (i64, i64) = v.extract().map_err(|_| {
                 PyTypeError::new_err(format!("cameras['{name}'] must be a (width, height) pair of integers"))
             })?;
             if !(1..=4096).contains(&size.0) || !(1..=4096).contains(&size.1) {
-                return Err(PyValueError::new_err(format!("cameras['{name}'] = {size:?}: width and height must be 1..4096")));
+                return Err(PyValueError::new_err(format!(
+                    "cameras['{name}'] = {size:?}: width and height must be 1..4096"
+                )));
             }
             out.push((name, Some((size.0 as u32, size.1 as u32))));
         }
         return Ok(out);
     }
     if arg.cast::<PyList>().is_ok() || arg.cast::<PyTuple>().is_ok() {
-        let names: Vec<String> = arg.extract().map_err(|_| PyTypeError::new_err("cameras list must hold camera names (str)"))?;
+        let names: Vec<String> =
+            arg.extract().map_err(|_| PyTypeError::new_err("cameras list must hold camera names (str)"))?;
         return Ok(names.into_iter().map(|n| (n, None)).collect());
     }
     Err(PyTypeError::new_err(
@@ -112,10 +116,7 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>) -> PyRes
     out.set_item("joint_velocity", state.dq_rad_s.to_vec())?;
     out.set_item("backend", "simulation")?;
     out.set_item("mode", if state.mode == ipc_schema::Mode::Lockstep as u32 { "lockstep" } else { "wall" })?;
-    out.set_item(
-        "control_type",
-        ControlType::from_u32(state.control_type).map(ControlType::name),
-    )?;
+    out.set_item("control_type", ControlType::from_u32(state.control_type).map(ControlType::name))?;
     let images = PyDict::new(py);
     let stamps = PyDict::new(py);
     let intr = PyDict::new(py);
@@ -180,7 +181,9 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>) -> PyRes
 
 /// Parses the action dict; Err carries a rejection reason for control_feedback.
 fn parse_actions(cmd: &Bound<'_, PyAny>) -> Result<(ControlType, f64, Vec<[f64; WAYPOINT_LEN]>), String> {
-    let d = cmd.cast::<PyDict>().map_err(|_| "post_actions expects a dict {\"actions\": [...], \"type\": \"joint\"|\"ee_pose\", \"freq\": \"\"}".to_string())?;
+    let d = cmd.cast::<PyDict>().map_err(|_| {
+        "post_actions expects a dict {\"actions\": [...], \"type\": \"joint\"|\"ee_pose\", \"freq\": \"\"}".to_string()
+    })?;
     for k in d.keys() {
         let k: String = k.extract().unwrap_or_default();
         if !["actions", "type", "freq"].contains(&k.as_str()) {
@@ -207,7 +210,9 @@ fn parse_actions(cmd: &Bound<'_, PyAny>) -> Result<(ControlType, f64, Vec<[f64; 
                 if s.trim().is_empty() {
                     0.0
                 } else {
-                    s.trim().parse::<f64>().map_err(|_| format!("freq \"{s}\" is not a number: use \"\" for 20 Hz or a rate in Hz"))?
+                    s.trim()
+                        .parse::<f64>()
+                        .map_err(|_| format!("freq \"{s}\" is not a number: use \"\" for 20 Hz or a rate in Hz"))?
                 }
             } else {
                 f.extract::<f64>().map_err(|_| "freq must be \"\" or a number in Hz".to_string())?
@@ -218,7 +223,8 @@ fn parse_actions(cmd: &Bound<'_, PyAny>) -> Result<(ControlType, f64, Vec<[f64; 
         return Err(format!("freq {freq} is not usable: use \"\" for 20 Hz or a positive rate in Hz"));
     }
     let actions = d.get_item("actions").ok().flatten().ok_or("missing key 'actions': a list of waypoints")?;
-    let rows: Vec<Bound<'_, PyAny>> = actions.extract().map_err(|_| "actions must be a list of waypoints (lists of numbers)".to_string())?;
+    let rows: Vec<Bound<'_, PyAny>> =
+        actions.extract().map_err(|_| "actions must be a list of waypoints (lists of numbers)".to_string())?;
     let mut out = Vec::with_capacity(rows.len());
     for (i, row) in rows.iter().enumerate() {
         let vals: Vec<f64> = row.extract().map_err(|_| format!("actions[{i}] must be a list of {width} numbers"))?;

@@ -26,7 +26,12 @@ pub fn run(gym: &str, seconds: f64) -> anyhow::Result<Value> {
         instance,
         mode: Mode::Wall,
         render_hz: 10.0,
-        control_args: vec!["--duration-s".into(), seconds.to_string(), "--stats-out".into(), stats_path.display().to_string()],
+        control_args: vec![
+            "--duration-s".into(),
+            seconds.to_string(),
+            "--stats-out".into(),
+            stats_path.display().to_string(),
+        ],
         ready_timeout: Duration::from_secs(60),
     };
     let mut inst = Instance::up(&opts)?;
@@ -63,7 +68,19 @@ pub fn run(gym: &str, seconds: f64) -> anyhow::Result<Value> {
         ]
     };
     crate::print_table(
-        &["loop", "ticks", "wake p50 µs", "p99", "p99.9", "max", "compute p50 µs", "p99", "max", "overruns", "allocs in tick"],
+        &[
+            "loop",
+            "ticks",
+            "wake p50 µs",
+            "p99",
+            "p99.9",
+            "max",
+            "compute p50 µs",
+            "p99",
+            "max",
+            "overruns",
+            "allocs in tick",
+        ],
         &[row("runtime", &rt), row("baseline", &base)],
     );
     let summary = |s: &Value| {

@@ -132,9 +132,16 @@ impl ChunkPlan {
         }
         if seg >= self.len {
             let w = self.last();
-            return Reference { q_rad: w.q_rad, dq_rad_s: [0.0; N], gripper: w.gripper, reached: self.len, finished: true };
+            return Reference {
+                q_rad: w.q_rad,
+                dq_rad_s: [0.0; N],
+                gripper: w.gripper,
+                reached: self.len,
+                finished: true,
+            };
         }
-        let (from, t0) = if seg == 0 { (self.start_q, 0.0) } else { (self.waypoints[seg - 1].q_rad, self.ends_s[seg - 1]) };
+        let (from, t0) =
+            if seg == 0 { (self.start_q, 0.0) } else { (self.waypoints[seg - 1].q_rad, self.ends_s[seg - 1]) };
         let to = self.waypoints[seg];
         let dur = self.ends_s[seg] - t0;
         let s = ((t_s - t0) / dur).clamp(0.0, 1.0);

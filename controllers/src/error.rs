@@ -36,7 +36,9 @@ impl fmt::Display for Rejection {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Self::Empty => write!(f, "actions is empty: send at least one waypoint"),
-            Self::TooLong { len, max } => write!(f, "actions has {len} waypoints, at most {max} are accepted: split the chunk"),
+            Self::TooLong { len, max } => {
+                write!(f, "actions has {len} waypoints, at most {max} are accepted: split the chunk")
+            }
             Self::NotFinite { waypoint, index } => {
                 write!(f, "actions[{waypoint}][{index}] is not a finite number (NaN or infinity)")
             }
@@ -58,10 +60,9 @@ impl fmt::Display for Rejection {
             Self::UnsupportedControlType(t) => {
                 write!(f, "control type \"{t}\" is not available in this runtime yet: use \"joint\"")
             }
-            Self::ControlTypeLocked { locked, requested } => write!(
-                f,
-                "this episode uses \"{locked}\" control; \"{requested}\" is rejected until reset()"
-            ),
+            Self::ControlTypeLocked { locked, requested } => {
+                write!(f, "this episode uses \"{locked}\" control; \"{requested}\" is rejected until reset()")
+            }
             Self::Busy => write!(f, "another request is executing: wait for it to finish"),
         }
     }

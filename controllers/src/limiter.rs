@@ -48,16 +48,16 @@ impl JointTracker {
     /// Starts at rest at a measured configuration (clamped into the safe range).
     pub fn at_rest(q_rad: [f64; N], finger_m: f64, robot: &RobotModel, cfg: &LimiterConfig) -> Self {
         let mut q = q_rad;
-        for j in 0..N {
-            let l = robot.joints[j];
-            let v = if q[j].is_finite() { q[j] } else { 0.5 * (l.q_min_rad + l.q_max_rad) };
-            q[j] = v.clamp(l.q_min_rad + cfg.q_margin_rad, l.q_max_rad - cfg.q_margin_rad);
+        for (qj, l) in q.iter_mut().zip(&robot.joints) {
+            let v = if qj.is_finite() { *qj } else { 0.5 * (l.q_min_rad + l.q_max_rad) };
+            *qj = v.clamp(l.q_min_rad + cfg.q_margin_rad, l.q_max_rad - cfg.q_margin_rad);
         }
         let finger = if finger_m.is_finite() { finger_m.clamp(0.0, robot.finger_max_m) } else { 0.0 };
         Self { q_rad: q, dq_rad_s: [0.0; N], finger_m: finger }
     }
 
     /// One tick of `dt_s`: follow `reference` within every limit. Allocation-free.
+    #[allow(clippy::needless_range_loop)] // joint j indexes limits, reference and state alike
     pub fn step(&mut self, reference: &Reference, dt_s: f64, robot: &RobotModel, cfg: &LimiterConfig) {
         for j in 0..N {
             let l = robot.joints[j];

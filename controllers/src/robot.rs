@@ -36,12 +36,7 @@ pub const PANDA_JERK_MAX: [f64; N] = [7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10
 impl RobotModel {
     /// Reads the arm chain from the root link down to `tcp_link`: its 7 revolute joints in order,
     /// and the first non-mimic prismatic joint below the chain as the gripper.
-    pub fn from_urdf_str(
-        xml: &str,
-        tcp_link: &str,
-        ddq_max: [f64; N],
-        jerk_max: [f64; N],
-    ) -> Result<Self, Error> {
+    pub fn from_urdf_str(xml: &str, tcp_link: &str, ddq_max: [f64; N], jerk_max: [f64; N]) -> Result<Self, Error> {
         let robot = urdf_rs::read_from_string(xml).map_err(|e| Error::Urdf(e.to_string()))?;
         if !robot.links.iter().any(|l| l.name == tcp_link) {
             let known = robot.links.iter().map(|l| l.name.as_str()).collect::<Vec<_>>().join(", ");
@@ -64,7 +59,13 @@ impl RobotModel {
         if revolute.len() != N {
             return Err(Error::WrongDof { link: tcp_link.into(), found: revolute.len() });
         }
-        let mut joints = [JointLimits { q_min_rad: 0.0, q_max_rad: 0.0, dq_max_rad_s: 0.0, ddq_max_rad_s2: 0.0, jerk_max_rad_s3: 0.0 }; N];
+        let mut joints = [JointLimits {
+            q_min_rad: 0.0,
+            q_max_rad: 0.0,
+            dq_max_rad_s: 0.0,
+            ddq_max_rad_s2: 0.0,
+            jerk_max_rad_s3: 0.0,
+        }; N];
         let mut joint_names: [String; N] = Default::default();
         for (i, j) in revolute.iter().enumerate() {
             let l = &j.limit;
@@ -95,7 +96,10 @@ impl RobotModel {
             return Err(Error::NoFinger { link: tcp_link.into() });
         };
         if !(finger.limit.upper > finger.limit.lower && finger.limit.velocity > 0.0) {
-            return Err(Error::BadLimit { joint: finger.name.clone(), detail: "finger range or speed is empty".into() });
+            return Err(Error::BadLimit {
+                joint: finger.name.clone(),
+                detail: "finger range or speed is empty".into(),
+            });
         }
         Ok(Self {
             name: robot.name.clone(),

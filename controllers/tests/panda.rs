@@ -5,7 +5,8 @@ use controllers::robot::{PANDA_DDQ_MAX, PANDA_JERK_MAX};
 use controllers::{ChunkPlan, JointTracker, LimiterConfig, Rejection, RobotModel, N};
 
 fn panda() -> RobotModel {
-    let xml = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../robots/panda/panda.urdf")).expect("URDF");
+    let xml =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../robots/panda/panda.urdf")).expect("URDF");
     RobotModel::from_urdf_str(&xml, "hand_tcp", PANDA_DDQ_MAX, PANDA_JERK_MAX).expect("model")
 }
 
@@ -30,7 +31,8 @@ fn urdf_gives_the_published_panda_limits() {
 fn malformed_urdf_is_a_clear_error() {
     let e = RobotModel::from_urdf_str("<robot name='x'><link", "tcp", PANDA_DDQ_MAX, PANDA_JERK_MAX).unwrap_err();
     assert!(e.to_string().contains("URDF does not parse"), "{e}");
-    let xml = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../robots/panda/panda.urdf")).expect("URDF");
+    let xml =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../robots/panda/panda.urdf")).expect("URDF");
     let e = RobotModel::from_urdf_str(&xml, "no_such_link", PANDA_DDQ_MAX, PANDA_JERK_MAX).unwrap_err();
     assert!(e.to_string().contains("no link named 'no_such_link'"), "{e}");
     let e = RobotModel::from_urdf_str(&xml, "link4", PANDA_DDQ_MAX, PANDA_JERK_MAX).unwrap_err();
@@ -112,7 +114,10 @@ fn the_limiter_output_never_breaks_a_limit_whatever_the_reference() {
         for j in 0..N {
             let l = r.joints[j];
             let q = t.q_rad[j];
-            assert!(q.is_finite() && q >= l.q_min_rad + c.q_margin_rad - 1e-12 && q <= l.q_max_rad - c.q_margin_rad + 1e-12, "tick {tick} joint {j} q {q}");
+            assert!(
+                q.is_finite() && q >= l.q_min_rad + c.q_margin_rad - 1e-12 && q <= l.q_max_rad - c.q_margin_rad + 1e-12,
+                "tick {tick} joint {j} q {q}"
+            );
             assert!(t.dq_rad_s[j].abs() <= l.dq_max_rad_s + 1e-9, "tick {tick} joint {j} v {}", t.dq_rad_s[j]);
             let dv = (t.dq_rad_s[j] - before.dq_rad_s[j]).abs();
             // A stop at a position limit zeroes velocity; any other change respects the acceleration.
@@ -152,8 +157,8 @@ fn a_chunk_is_tracked_to_its_last_waypoint() {
         }
         assert!(time < 10.0, "never settled");
     }
-    for j in 0..N {
-        assert!((t.q_rad[j] - goal[j]).abs() < 1e-6);
+    for (q, g) in t.q_rad.iter().zip(&goal) {
+        assert!((q - g).abs() < 1e-6);
     }
     assert_eq!(t.finger_m, 0.0);
 }

@@ -198,14 +198,28 @@ pub struct Reply {
 
 impl Reply {
     pub fn new(id: u64, client: u64, status: Status, reason: &str) -> Self {
-        let mut r = Self { id, client, status: status as u32, executed: 0, final_joint_error_rad: 0.0, reason: [0; REASON_LEN] };
+        let mut r = Self {
+            id,
+            client,
+            status: status as u32,
+            executed: 0,
+            final_joint_error_rad: 0.0,
+            reason: [0; REASON_LEN],
+        };
         write_str(&mut r.reason, reason);
         r
     }
     /// Like [`Reply::new`], formatting the reason straight into the fixed buffer (no allocation;
     /// used on the tick path).
     pub fn formatted(id: u64, client: u64, status: Status, reason: core::fmt::Arguments<'_>) -> Self {
-        let mut r = Self { id, client, status: status as u32, executed: 0, final_joint_error_rad: 0.0, reason: [0; REASON_LEN] };
+        let mut r = Self {
+            id,
+            client,
+            status: status as u32,
+            executed: 0,
+            final_joint_error_rad: 0.0,
+            reason: [0; REASON_LEN],
+        };
         let mut w = FixedWriter { buf: &mut r.reason, len: 0 };
         let _ = core::fmt::write(&mut w, reason);
         r
@@ -646,7 +660,7 @@ mod schema_tests {
             .publish_subscribe::<SimState>()
             .create_with_attributes(&AttributeSpecifier::new().define(&key, &other).expect("define"))
             .expect("create service of another schema");
-        let err = open_or_create_pubsub::<SimState>(&node, &name, Qos::STREAM).err().expect("must be refused");
+        let err = open_or_create_pubsub::<SimState>(&node, &name, Qos::STREAM).expect_err("must be refused");
         assert!(matches!(err, SchemaError::VersionMismatch { .. }), "{err}");
         assert!(err.to_string().contains("schema version mismatch"), "{err}");
     }
@@ -656,7 +670,7 @@ mod schema_tests {
         let node = node(&format!("schema-test2-{}", std::process::id())).expect("node");
         let name = unique("cmd");
         let _ours = open_or_create_pubsub::<JointCommand>(&node, &name, Qos::STREAM).expect("create");
-        let err = open_or_create_pubsub::<SimState>(&node, &name, Qos::STREAM).err().expect("must be refused");
+        let err = open_or_create_pubsub::<SimState>(&node, &name, Qos::STREAM).expect_err("must be refused");
         assert!(matches!(err, SchemaError::VersionMismatch { .. }), "{err}");
     }
 

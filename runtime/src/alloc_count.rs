@@ -65,7 +65,8 @@ impl Pool {
     fn index_of(&self, p: *mut u8) -> Option<usize> {
         let base = self.blocks.as_ptr() as usize;
         let a = p as usize;
-        (a >= base && a < base + BLOCKS * core::mem::size_of::<Block>()).then(|| (a - base) / core::mem::size_of::<Block>())
+        (a >= base && a < base + BLOCKS * core::mem::size_of::<Block>())
+            .then(|| (a - base) / core::mem::size_of::<Block>())
     }
 }
 

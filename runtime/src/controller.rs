@@ -88,12 +88,19 @@ impl Controller {
         if state.seq > 0 {
             self.ensure_tracker(state);
         }
-        let reject = |why: Rejection| (Some(Reply::formatted(req.id, req.client, Status::Rejected, format_args!("{why}"))), Forward::None);
+        let reject = |why: Rejection| {
+            (Some(Reply::formatted(req.id, req.client, Status::Rejected, format_args!("{why}"))), Forward::None)
+        };
         if self.busy() {
             return reject(Rejection::Busy);
         }
         let Some(tracker) = self.tracker else {
-            let r = Reply::new(req.id, req.client, Status::Failed, "the runtime has no robot state yet: the simulator is not running");
+            let r = Reply::new(
+                req.id,
+                req.client,
+                Status::Failed,
+                "the runtime has no robot state yet: the simulator is not running",
+            );
             return (Some(r), Forward::None);
         };
         match req.kind {
@@ -130,7 +137,12 @@ impl Controller {
                 }
             }
             other => {
-                let r = Reply::formatted(req.id, req.client, Status::Rejected, format_args!("unknown request kind {other}"));
+                let r = Reply::formatted(
+                    req.id,
+                    req.client,
+                    Status::Rejected,
+                    format_args!("unknown request kind {other}"),
+                );
                 (Some(r), Forward::None)
             }
         }
@@ -222,7 +234,13 @@ impl Controller {
             }
         }
         self.cmd_seq += 1;
-        let cmd = JointCommand { seq: self.cmd_seq, state_seq: state.seq, q_rad: tracker.q_rad, dq_rad_s: tracker.dq_rad_s, finger_m: tracker.finger_m };
+        let cmd = JointCommand {
+            seq: self.cmd_seq,
+            state_seq: state.seq,
+            q_rad: tracker.q_rad,
+            dq_rad_s: tracker.dq_rad_s,
+            finger_m: tracker.finger_m,
+        };
         (cmd, reply)
     }
 

@@ -43,9 +43,17 @@ pub fn resolve_scene(gym: &str) -> anyhow::Result<PathBuf> {
         return Ok(by_name);
     }
     let known: Vec<String> = std::fs::read_dir(gyms_dir())
-        .map(|d| d.filter_map(|e| e.ok()).filter(|e| e.path().join("scene.toml").is_file()).map(|e| e.file_name().to_string_lossy().into_owned()).collect())
+        .map(|d| {
+            d.filter_map(|e| e.ok())
+                .filter(|e| e.path().join("scene.toml").is_file())
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect()
+        })
         .unwrap_or_default();
-    bail!("no gym '{gym}': give a gym name ({}), a gym folder or a scene file", if known.is_empty() { "none found".into() } else { known.join(", ") })
+    bail!(
+        "no gym '{gym}': give a gym name ({}), a gym folder or a scene file",
+        if known.is_empty() { "none found".into() } else { known.join(", ") }
+    )
 }
 
 fn sibling(name: &str) -> anyhow::Result<PathBuf> {
@@ -117,13 +125,22 @@ impl Instance {
         }
         for node in [process::control_node(&opts.instance), process::sim_node(&opts.instance)] {
             if process::node_alive(&node) == Some(true) {
-                bail!("instance '{}' is already running ({node} is alive): stop it first, or pick another --instance", opts.instance);
+                bail!(
+                    "instance '{}' is already running ({node} is alive): stop it first, or pick another --instance",
+                    opts.instance
+                );
             }
         }
         let scene = opts.scene.display().to_string();
         let sim = spawn(
             &sibling("r2g-sim")?,
-            &[scene.clone(), "--instance".into(), opts.instance.clone(), "--render-hz".into(), opts.render_hz.to_string()],
+            &[
+                scene.clone(),
+                "--instance".into(),
+                opts.instance.clone(),
+                "--render-hz".into(),
+                opts.render_hz.to_string(),
+            ],
         )?;
         let mode = if opts.mode == Mode::Lockstep { "lockstep" } else { "wall" };
         let mut control_args = vec![scene, "--instance".into(), opts.instance.clone(), "--mode".into(), mode.into()];
@@ -148,12 +165,20 @@ impl Instance {
     fn wait_ready(&mut self, opts: &UpOptions) -> anyhow::Result<()> {
         let services = Services::new(&opts.instance)?;
         let node = ipc_schema::node(&format!("r2g-up-{}", opts.instance))?;
-        let robot = ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)?.subscriber_builder().create()?;
-        let info = ipc_schema::open_or_create_pubsub::<SimInfo>(&node, &services.sim_info(), Qos::STREAM)?.subscriber_builder().create()?;
+        let robot = ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)?
+            .subscriber_builder()
+            .create()?;
+        let info = ipc_schema::open_or_create_pubsub::<SimInfo>(&node, &services.sim_info(), Qos::STREAM)?
+            .subscriber_builder()
+            .create()?;
         let t0 = Instant::now();
         let mut sim_info: Option<SimInfo> = None;
         let mut have_state = false;
-        let mut cams: Vec<(String, iceoryx2::port::subscriber::Subscriber<iceoryx2::prelude::ipc::Service, CameraFrame, ()>, bool)> = Vec::new();
+        let mut cams: Vec<(
+            String,
+            iceoryx2::port::subscriber::Subscriber<iceoryx2::prelude::ipc::Service, CameraFrame, ()>,
+            bool,
+        )> = Vec::new();
         loop {
             if let Some(status) = self.exited()? {
                 bail!("{status} before the instance was ready");
@@ -170,7 +195,10 @@ impl Instance {
                     for i in 0..s.camera_count as usize {
                         let name = s.camera_name(i).to_string();
                         let qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 8 };
-                        let sub = ipc_schema::open_or_create_pubsub::<CameraFrame>(&node, &services.camera(&name), qos)?.subscriber_builder().create()?;
+                        let sub =
+                            ipc_schema::open_or_create_pubsub::<CameraFrame>(&node, &services.camera(&name), qos)?
+                                .subscriber_builder()
+                                .create()?;
                         cams.push((name, sub, false));
                     }
                     sim_info = Some(s);

@@ -72,13 +72,27 @@ impl Ports {
         let node = ipc_schema::node(&process::control_node(&services.instance))?;
         let ps = |n: &str| n.to_string();
         Ok(Self {
-            state_sub: ipc_schema::open_or_create_pubsub::<SimState>(&node, &ps(&services.sim_state()), Qos::STREAM)?.subscriber_builder().create()?,
-            cmd_pub: ipc_schema::open_or_create_pubsub::<JointCommand>(&node, &services.command(), Qos::STREAM)?.publisher_builder().create()?,
-            reset_pub: ipc_schema::open_or_create_pubsub::<SimReset>(&node, &services.sim_reset(), Qos::QUEUE)?.publisher_builder().create()?,
-            robot_pub: ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)?.publisher_builder().create()?,
-            info_pub: ipc_schema::open_or_create_pubsub::<RuntimeInfo>(&node, &services.runtime_info(), Qos::STREAM)?.publisher_builder().create()?,
-            req_sub: ipc_schema::open_or_create_pubsub::<Request>(&node, &services.request(), Qos::QUEUE)?.subscriber_builder().create()?,
-            reply_pub: ipc_schema::open_or_create_pubsub::<Reply>(&node, &services.reply(), Qos::QUEUE)?.publisher_builder().create()?,
+            state_sub: ipc_schema::open_or_create_pubsub::<SimState>(&node, &ps(&services.sim_state()), Qos::STREAM)?
+                .subscriber_builder()
+                .create()?,
+            cmd_pub: ipc_schema::open_or_create_pubsub::<JointCommand>(&node, &services.command(), Qos::STREAM)?
+                .publisher_builder()
+                .create()?,
+            reset_pub: ipc_schema::open_or_create_pubsub::<SimReset>(&node, &services.sim_reset(), Qos::QUEUE)?
+                .publisher_builder()
+                .create()?,
+            robot_pub: ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)?
+                .publisher_builder()
+                .create()?,
+            info_pub: ipc_schema::open_or_create_pubsub::<RuntimeInfo>(&node, &services.runtime_info(), Qos::STREAM)?
+                .publisher_builder()
+                .create()?,
+            req_sub: ipc_schema::open_or_create_pubsub::<Request>(&node, &services.request(), Qos::QUEUE)?
+                .subscriber_builder()
+                .create()?,
+            reply_pub: ipc_schema::open_or_create_pubsub::<Reply>(&node, &services.reply(), Qos::QUEUE)?
+                .publisher_builder()
+                .create()?,
             sim_wake: ipc_schema::open_or_create_event(&node, &services.sim_wake())?.notifier_builder().create()?,
             agent_wake: ipc_schema::open_or_create_event(&node, &services.agent_wake())?.notifier_builder().create()?,
             wake: ipc_schema::open_or_create_event(&node, &services.control_wake())?.listener_builder().create()?,
@@ -224,7 +238,7 @@ fn wall_loop(
         if let Some(r) = reply {
             ports.reply_pub.send_copy(r)?;
         }
-        if robot_seq % 200 == 0 {
+        if robot_seq.is_multiple_of(200) {
             // Late subscribers get the limits from history; resend so they never wait long.
             ports.info_pub.send_copy(info)?;
         }
@@ -244,7 +258,10 @@ fn wall_loop(
             return Ok(stats);
         }
         if sim.lost() {
-            bail!("r2g-sim of instance '{}' stopped; the runtime stops too (arm command held at the last value)", cfg.instance);
+            bail!(
+                "r2g-sim of instance '{}' stopped; the runtime stops too (arm command held at the last value)",
+                cfg.instance
+            );
         }
         if done - last_state_ns > cfg.state_timeout.as_nanos() as u64 {
             bail!("no state from r2g-sim for {:?}; the runtime stops", cfg.state_timeout);
@@ -304,7 +321,7 @@ fn lockstep_loop(
             if last_beat.elapsed() > Duration::from_millis(20) {
                 robot_seq += 1;
                 ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32))?;
-                if robot_seq % 10 == 0 {
+                if robot_seq.is_multiple_of(10) {
                     ports.info_pub.send_copy(info)?;
                 }
                 last_beat = std::time::Instant::now();
@@ -315,7 +332,12 @@ fn lockstep_loop(
 }
 
 /// Lockstep: takes states until one satisfies `done`; gives up if the simulator dies or is silent.
-fn wait_for_state(ports: &Ports, sim: &PeerWatch, latest: &mut SimState, done: impl Fn(&SimState) -> bool) -> anyhow::Result<()> {
+fn wait_for_state(
+    ports: &Ports,
+    sim: &PeerWatch,
+    latest: &mut SimState,
+    done: impl Fn(&SimState) -> bool,
+) -> anyhow::Result<()> {
     let waited = std::time::Instant::now();
     loop {
         ports.newest_state(latest)?;

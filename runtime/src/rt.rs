@@ -62,10 +62,15 @@ pub fn now_ns() -> u64 {
 #[inline]
 pub fn sleep_until(deadline_ns: u64, spin_ns: u64) {
     let sleep_to = deadline_ns.saturating_sub(spin_ns);
-    let ts = libc::timespec { tv_sec: (sleep_to / 1_000_000_000) as libc::time_t, tv_nsec: (sleep_to % 1_000_000_000) as libc::c_long };
+    let ts = libc::timespec {
+        tv_sec: (sleep_to / 1_000_000_000) as libc::time_t,
+        tv_nsec: (sleep_to % 1_000_000_000) as libc::c_long,
+    };
     // SAFETY: valid timespec; EINTR just returns early and the loop below or the caller copes.
     unsafe {
-        while libc::clock_nanosleep(libc::CLOCK_MONOTONIC, libc::TIMER_ABSTIME, &ts, std::ptr::null_mut()) == libc::EINTR {}
+        while libc::clock_nanosleep(libc::CLOCK_MONOTONIC, libc::TIMER_ABSTIME, &ts, std::ptr::null_mut())
+            == libc::EINTR
+        {}
     }
     while spin_ns > 0 && now_ns() < deadline_ns {
         std::hint::spin_loop();

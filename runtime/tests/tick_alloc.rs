@@ -25,8 +25,10 @@ fn measure(what: &str, mut f: impl FnMut()) -> u64 {
 fn the_ipc_operations_of_the_tick_do_not_allocate() {
     let node = ipc_schema::node(&format!("alloc-test-{}", std::process::id())).expect("node");
     let base = format!("r2g/alloc{}", std::process::id());
-    let state = ipc_schema::open_or_create_pubsub::<SimState>(&node, &format!("{base}/state"), Qos::STREAM).expect("svc");
-    let cmd = ipc_schema::open_or_create_pubsub::<JointCommand>(&node, &format!("{base}/cmd"), Qos::STREAM).expect("svc");
+    let state =
+        ipc_schema::open_or_create_pubsub::<SimState>(&node, &format!("{base}/state"), Qos::STREAM).expect("svc");
+    let cmd =
+        ipc_schema::open_or_create_pubsub::<JointCommand>(&node, &format!("{base}/cmd"), Qos::STREAM).expect("svc");
     let ev = ipc_schema::open_or_create_event(&node, &format!("{base}/wake")).expect("event");
     let state_pub = state.publisher_builder().create().expect("pub");
     let state_sub = state.subscriber_builder().create().expect("sub");
@@ -85,7 +87,8 @@ fn the_ipc_operations_of_the_tick_do_not_allocate() {
     }
     eprintln!("receive after a new publisher connected: {} system allocator calls", tick_allocations() - before);
     drop(late_pub);
-    let queue = ipc_schema::open_or_create_pubsub::<ipc_schema::Reply>(&node, &format!("{base}/reply"), Qos::QUEUE).expect("svc");
+    let queue = ipc_schema::open_or_create_pubsub::<ipc_schema::Reply>(&node, &format!("{base}/reply"), Qos::QUEUE)
+        .expect("svc");
     let reply_pub = queue.publisher_builder().create().expect("pub");
     let reply = ipc_schema::Reply::new(1, 1, ipc_schema::Status::Executed, "ok");
     reply_pub.send_copy(reply).expect("send");

@@ -62,9 +62,11 @@ fn run() -> anyhow::Result<()> {
         .publisher_builder()
         .create()?;
     let wake = ipc_schema::open_or_create_event(&node, &services.sim_wake())?.listener_builder().create()?;
-    let control_wake = ipc_schema::open_or_create_event(&node, &services.control_wake())?.notifier_builder().create()?;
+    let control_wake =
+        ipc_schema::open_or_create_event(&node, &services.control_wake())?.notifier_builder().create()?;
 
-    let mut info = SimInfo { schema: ipc_schema::SCHEMA_VERSION, physics_timestep_s: sim.scene.timestep_s, ..Default::default() };
+    let mut info =
+        SimInfo { schema: ipc_schema::SCHEMA_VERSION, physics_timestep_s: sim.scene.timestep_s, ..Default::default() };
     let render_on = args.render_hz > 0.0 && !sim.scene.cameras.is_empty();
     if render_on {
         info.camera_count = sim.scene.cameras.len() as u32;
@@ -107,7 +109,10 @@ fn run() -> anyhow::Result<()> {
         Ok(())
     };
     publish(&sim, seq, 0, 0)?;
-    eprintln!("r2g-sim: instance '{}' scene '{}' ready ({} cameras at {} Hz)", args.instance, sim.scene.name, info.camera_count, args.render_hz);
+    eprintln!(
+        "r2g-sim: instance '{}' scene '{}' ready ({} cameras at {} Hz)",
+        args.instance, sim.scene.name, info.camera_count, args.render_hz
+    );
 
     let result = loop {
         if process::stop_requested() {

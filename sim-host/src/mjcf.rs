@@ -50,7 +50,8 @@ fn v3(v: &urdf_rs::Vec3) -> [f64; 3] {
 /// xyaxes of a MuJoCo camera (it looks along its −z, image up along +y) aimed at `look_at`.
 fn camera_xyaxes(c: &CameraSpec, default_up: [f64; 3]) -> Option<String> {
     let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-    let cross = |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+    let cross =
+        |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
     let norm = |a: [f64; 3]| {
         let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
         if n < 1e-9 {
@@ -90,9 +91,15 @@ impl Writer<'_> {
     fn geoms(&mut self, link: &urdf_rs::Link, indent: &str) -> Result<(), MjcfError> {
         let shape = |g: &urdf_rs::Geometry| -> Result<(String, String), MjcfError> {
             Ok(match g {
-                urdf_rs::Geometry::Box { size } => ("box".into(), f3([size.0[0] / 2.0, size.0[1] / 2.0, size.0[2] / 2.0])),
-                urdf_rs::Geometry::Cylinder { radius, length } => ("cylinder".into(), format!("{radius} {}", length / 2.0)),
-                urdf_rs::Geometry::Capsule { radius, length } => ("capsule".into(), format!("{radius} {}", length / 2.0)),
+                urdf_rs::Geometry::Box { size } => {
+                    ("box".into(), f3([size.0[0] / 2.0, size.0[1] / 2.0, size.0[2] / 2.0]))
+                }
+                urdf_rs::Geometry::Cylinder { radius, length } => {
+                    ("cylinder".into(), format!("{radius} {}", length / 2.0))
+                }
+                urdf_rs::Geometry::Capsule { radius, length } => {
+                    ("capsule".into(), format!("{radius} {}", length / 2.0))
+                }
                 urdf_rs::Geometry::Sphere { radius } => ("sphere".into(), format!("{radius}")),
                 urdf_rs::Geometry::Mesh { filename, .. } => {
                     return Err(MjcfError::Unsupported { link: link.name.clone(), what: format!("mesh {filename}") })
@@ -152,7 +159,12 @@ impl Writer<'_> {
                 "{indent}<inertial pos=\"{}\" mass=\"{}\" fullinertia=\"{} {} {} {} {} {}\"/>",
                 f3(v3(&i.origin.xyz)),
                 i.mass.value,
-                b[0][0], b[1][1], b[2][2], b[0][1], b[0][2], b[1][2]
+                b[0][0],
+                b[1][1],
+                b[2][2],
+                b[0][1],
+                b[0][2],
+                b[1][2]
             )
             .ok();
         }
@@ -161,17 +173,35 @@ impl Writer<'_> {
             writeln!(self.out, "{indent}<site name=\"{TCP_SITE}\" size=\"0.005\" rgba=\"1 0 0 0\"/>").ok();
         }
         for cam in self.cameras_by_link.remove(link_name).unwrap_or_default() {
-            let xy = camera_xyaxes(cam, [1.0, 0.0, 0.0]).ok_or_else(|| MjcfError::BadCamera { camera: cam.name.clone() })?;
-            writeln!(self.out, "{indent}<camera name=\"{}\" pos=\"{}\" xyaxes=\"{xy}\" fovy=\"{}\"/>", cam.name, f3(cam.position_m), cam.fovy_deg).ok();
+            let xy =
+                camera_xyaxes(cam, [1.0, 0.0, 0.0]).ok_or_else(|| MjcfError::BadCamera { camera: cam.name.clone() })?;
+            writeln!(
+                self.out,
+                "{indent}<camera name=\"{}\" pos=\"{}\" xyaxes=\"{xy}\" fovy=\"{}\"/>",
+                cam.name,
+                f3(cam.position_m),
+                cam.fovy_deg
+            )
+            .ok();
         }
         for j in self.children.get(link_name).cloned().unwrap_or_default() {
-            writeln!(self.out, "{indent}<body name=\"{}\" pos=\"{}\" euler=\"{}\" gravcomp=\"1\">", j.child.link, f3(v3(&j.origin.xyz)), f3(v3(&j.origin.rpy))).ok();
+            writeln!(
+                self.out,
+                "{indent}<body name=\"{}\" pos=\"{}\" euler=\"{}\" gravcomp=\"1\">",
+                j.child.link,
+                f3(v3(&j.origin.xyz)),
+                f3(v3(&j.origin.rpy))
+            )
+            .ok();
             let kind = match j.joint_type {
                 urdf_rs::JointType::Revolute => Some("hinge"),
                 urdf_rs::JointType::Prismatic => Some("slide"),
                 urdf_rs::JointType::Fixed => None,
                 ref other => {
-                    return Err(MjcfError::Unsupported { link: j.child.link.clone(), what: format!("joint type {other:?}") })
+                    return Err(MjcfError::Unsupported {
+                        link: j.child.link.clone(),
+                        what: format!("joint type {other:?}"),
+                    })
                 }
             };
             if let Some(kind) = kind {
@@ -212,19 +242,28 @@ pub fn compile(scene: &Scene, urdf_xml: &str, arm_joints: &[String], finger_join
         }
         cameras_by_link.entry(link).or_default().push(c);
     }
-    let materials = robot
-        .materials
-        .iter()
-        .filter_map(|m| m.color.as_ref().map(|c| (m.name.clone(), c.rgba.0)))
-        .collect();
-    let mut w = Writer { robot: &robot, materials, children, cameras_by_link, tcp_link: scene.robot.tcp_link.clone(), out: String::new() };
+    let materials =
+        robot.materials.iter().filter_map(|m| m.color.as_ref().map(|c| (m.name.clone(), c.rgba.0))).collect();
+    let mut w = Writer {
+        robot: &robot,
+        materials,
+        children,
+        cameras_by_link,
+        tcp_link: scene.robot.tcp_link.clone(),
+        out: String::new(),
+    };
     let max_w = scene.cameras.iter().map(|c| c.width).max().unwrap_or(640);
     let max_h = scene.cameras.iter().map(|c| c.height).max().unwrap_or(480);
 
     let o = &mut w.out;
     writeln!(o, "<mujoco model=\"{}\">", scene.name).ok();
     writeln!(o, "  <compiler angle=\"radian\" eulerseq=\"xyz\" autolimits=\"true\"/>").ok();
-    writeln!(o, "  <option timestep=\"{}\" integrator=\"implicitfast\" cone=\"elliptic\" impratio=\"10\"/>", scene.timestep_s).ok();
+    writeln!(
+        o,
+        "  <option timestep=\"{}\" integrator=\"implicitfast\" cone=\"elliptic\" impratio=\"10\"/>",
+        scene.timestep_s
+    )
+    .ok();
     writeln!(o, "  <visual><global offwidth=\"{max_w}\" offheight=\"{max_h}\"/><quality shadowsize=\"1024\"/><headlight ambient=\"0.35 0.35 0.35\" diffuse=\"0.5 0.5 0.5\"/></visual>").ok();
     writeln!(o, "  <asset>\n    <texture name=\"sky\" type=\"skybox\" builtin=\"gradient\" rgb1=\"0.75 0.82 0.9\" rgb2=\"0.25 0.3 0.38\" width=\"256\" height=\"256\"/>").ok();
     writeln!(o, "    <texture name=\"floor\" type=\"2d\" builtin=\"checker\" rgb1=\"0.42 0.44 0.46\" rgb2=\"0.32 0.34 0.36\" width=\"256\" height=\"256\"/>").ok();
@@ -244,7 +283,14 @@ pub fn compile(scene: &Scene, urdf_xml: &str, arm_joints: &[String], finger_join
     }
     for c in scene.cameras.iter().filter(|c| c.link.is_none()) {
         let xy = camera_xyaxes(c, [0.0, 0.0, 1.0]).ok_or_else(|| MjcfError::BadCamera { camera: c.name.clone() })?;
-        writeln!(o, "    <camera name=\"{}\" pos=\"{}\" xyaxes=\"{xy}\" fovy=\"{}\"/>", c.name, f3(c.position_m), c.fovy_deg).ok();
+        writeln!(
+            o,
+            "    <camera name=\"{}\" pos=\"{}\" xyaxes=\"{xy}\" fovy=\"{}\"/>",
+            c.name,
+            f3(c.position_m),
+            c.fovy_deg
+        )
+        .ok();
     }
     for ob in &scene.objects {
         let (t, size) = match ob.shape {
@@ -255,7 +301,17 @@ pub fn compile(scene: &Scene, urdf_xml: &str, arm_joints: &[String], finger_join
         };
         let q = ob.quat_wxyz;
         let rgba = ob.rgba;
-        writeln!(o, "    <body name=\"{}\" pos=\"{}\" quat=\"{} {} {} {}\">", ob.name, f3(ob.position_m), q[0], q[1], q[2], q[3]).ok();
+        writeln!(
+            o,
+            "    <body name=\"{}\" pos=\"{}\" quat=\"{} {} {} {}\">",
+            ob.name,
+            f3(ob.position_m),
+            q[0],
+            q[1],
+            q[2],
+            q[3]
+        )
+        .ok();
         if ob.free {
             writeln!(o, "      <freejoint name=\"{}_free\"/>", ob.name).ok();
         }
@@ -274,7 +330,8 @@ pub fn compile(scene: &Scene, urdf_xml: &str, arm_joints: &[String], finger_join
     writeln!(o, "    </body>\n  </worldbody>").ok();
 
     // The mimic joints of the gripper follow the driven finger.
-    let mimics: Vec<&urdf_rs::Joint> = robot.joints.iter().filter(|j| j.mimic.as_ref().is_some_and(|m| m.joint == finger_joint)).collect();
+    let mimics: Vec<&urdf_rs::Joint> =
+        robot.joints.iter().filter(|j| j.mimic.as_ref().is_some_and(|m| m.joint == finger_joint)).collect();
     writeln!(o, "  <tendon>\n    <fixed name=\"r2g_fingers\">").ok();
     let coef = 1.0 / (1 + mimics.len()) as f64;
     writeln!(o, "      <joint joint=\"{finger_joint}\" coef=\"{coef}\"/>").ok();
@@ -285,7 +342,12 @@ pub fn compile(scene: &Scene, urdf_xml: &str, arm_joints: &[String], finger_join
     if !mimics.is_empty() {
         writeln!(o, "  <equality>").ok();
         for m in &mimics {
-            writeln!(o, "    <joint joint1=\"{}\" joint2=\"{finger_joint}\" solimp=\"0.95 0.99 0.001\" solref=\"0.005 1\"/>", m.name).ok();
+            writeln!(
+                o,
+                "    <joint joint1=\"{}\" joint2=\"{finger_joint}\" solimp=\"0.95 0.99 0.001\" solref=\"0.005 1\"/>",
+                m.name
+            )
+            .ok();
         }
         writeln!(o, "  </equality>").ok();
     }

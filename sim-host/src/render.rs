@@ -43,17 +43,15 @@ pub fn run(
     let camera_qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 8 };
     let mut publishers = Vec::new();
     for (spec, _) in &cfg.cameras {
-        let svc = ipc_schema::open_or_create_pubsub::<CameraFrame>(&node, &cfg.services.camera(&spec.name), camera_qos)?;
+        let svc =
+            ipc_schema::open_or_create_pubsub::<CameraFrame>(&node, &cfg.services.camera(&spec.name), camera_qos)?;
         publishers.push(svc.publisher_builder().max_loaned_samples(1).create()?);
     }
     let (w, h) = cfg.cameras.first().map(|(c, _)| (c.width, c.height)).unwrap_or((640, 480));
-    let mut renderer = MjRenderer::builder()
-        .width(w)
-        .height(h)
-        .rgb(true)
-        .depth(false)
-        .build(&model)
-        .map_err(|e| anyhow::anyhow!("cannot start headless rendering (EGL): {e}; install Mesa's EGL (make deps)"))?;
+    let mut renderer =
+        MjRenderer::builder().width(w).height(h).rgb(true).depth(false).build(&model).map_err(|e| {
+            anyhow::anyhow!("cannot start headless rendering (EGL): {e}; install Mesa's EGL (make deps)")
+        })?;
     let mut data = MjData::new(model.clone());
     let period = Duration::from_secs_f64(1.0 / cfg.rate_hz.max(0.1));
     let mut last_seq = u64::MAX;
@@ -113,7 +111,8 @@ pub fn run(
             };
             // MuJoCo's camera frame has y up and z backwards; the optical frame has y down and
             // z forwards: a half turn about x.
-            let world_from_optical = math::compose((cam_p, math::quat_from_mat(&cam_m)), ([0.0; 3], [1.0, 0.0, 0.0, 0.0]));
+            let world_from_optical =
+                math::compose((cam_p, math::quat_from_mat(&cam_m)), ([0.0; 3], [1.0, 0.0, 0.0, 0.0]));
             let (bp, bq) = math::compose(math::inverse(world_from_base), world_from_optical);
             let fy = 0.5 * spec.height as f64 / (0.5 * spec.fovy_deg.to_radians()).tan();
             frame_seq += 1;
@@ -137,7 +136,11 @@ pub fn run(
                 (*p).cx = spec.width as f64 / 2.0;
                 (*p).cy = spec.height as f64 / 2.0;
                 (*p).base_from_camera = Pose { position_m: bp, quat_xyzw: bq };
-                std::ptr::copy_nonoverlapping(rgb.as_ptr(), std::ptr::addr_of_mut!((*p).rgb).cast::<u8>(), n.min(rgb.len()));
+                std::ptr::copy_nonoverlapping(
+                    rgb.as_ptr(),
+                    std::ptr::addr_of_mut!((*p).rgb).cast::<u8>(),
+                    n.min(rgb.len()),
+                );
                 sample.assume_init()
             };
             sample.send()?;

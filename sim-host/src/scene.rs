@@ -182,19 +182,34 @@ impl Scene {
         }
         let mut names = std::collections::HashSet::new();
         if self.cameras.len() > ipc_schema::MAX_CAMERAS {
-            return Err(format!("{} cameras given, at most {} are supported", self.cameras.len(), ipc_schema::MAX_CAMERAS));
+            return Err(format!(
+                "{} cameras given, at most {} are supported",
+                self.cameras.len(),
+                ipc_schema::MAX_CAMERAS
+            ));
         }
         for c in &self.cameras {
             if !names.insert(c.name.clone()) {
                 return Err(format!("camera name '{}' is used twice", c.name));
             }
-            if c.name.is_empty() || c.name.len() >= ipc_schema::NAME_LEN || !c.name.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_') {
+            if c.name.is_empty()
+                || c.name.len() >= ipc_schema::NAME_LEN
+                || !c.name.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '_')
+            {
                 return Err(format!("camera name '{}' must be 1-31 characters of a-z A-Z 0-9 _", c.name));
             }
-            if c.width == 0 || c.height == 0 || c.width as usize > ipc_schema::MAX_IMAGE_WIDTH || c.height as usize > ipc_schema::MAX_IMAGE_HEIGHT {
+            if c.width == 0
+                || c.height == 0
+                || c.width as usize > ipc_schema::MAX_IMAGE_WIDTH
+                || c.height as usize > ipc_schema::MAX_IMAGE_HEIGHT
+            {
                 return Err(format!(
                     "camera '{}' is {}x{}; sizes from 1x1 to {}x{} are supported",
-                    c.name, c.width, c.height, ipc_schema::MAX_IMAGE_WIDTH, ipc_schema::MAX_IMAGE_HEIGHT
+                    c.name,
+                    c.width,
+                    c.height,
+                    ipc_schema::MAX_IMAGE_WIDTH,
+                    ipc_schema::MAX_IMAGE_HEIGHT
                 ));
             }
             if !(c.fovy_deg > 1.0 && c.fovy_deg < 170.0) {
@@ -221,7 +236,7 @@ impl Scene {
             if o.size_m.len() != want || !o.size_m.iter().all(|s| s.is_finite() && *s > 0.0) {
                 return Err(format!("object '{}' ({:?}) needs size_m of {want} positive numbers", o.name, o.shape));
             }
-            if !(o.mass_kg.is_finite() && o.mass_kg > 0.0) || !finite(&o.position_m) || !finite(&o.quat_wxyz) {
+            if !(o.mass_kg.is_finite() && o.mass_kg > 0.0 && finite(&o.position_m) && finite(&o.quat_wxyz)) {
                 return Err(format!("object '{}' needs a positive mass and finite pose", o.name));
             }
         }

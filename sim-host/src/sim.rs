@@ -87,7 +87,10 @@ impl Sim {
         let f = m.ffi();
         // SAFETY: the address arrays hold njnt entries and the ids come from name lookups.
         let (qposadr, dofadr) = unsafe {
-            (std::slice::from_raw_parts(f.jnt_qposadr, f.njnt as usize), std::slice::from_raw_parts(f.jnt_dofadr, f.njnt as usize))
+            (
+                std::slice::from_raw_parts(f.jnt_qposadr, f.njnt as usize),
+                std::slice::from_raw_parts(f.jnt_dofadr, f.njnt as usize),
+            )
         };
         for (i, name) in robot.joint_names.iter().enumerate() {
             let j = joint(name)?;
@@ -102,7 +105,11 @@ impl Sim {
         }) {
             layout.finger_qpos.push(qposadr[joint(&j.name)?] as usize);
         }
-        let root = robot.joint_names.first().and_then(|n| urdf_robot.joints.iter().find(|j| &j.name == n)).map(|j| j.parent.link.clone());
+        let root = robot
+            .joint_names
+            .first()
+            .and_then(|n| urdf_robot.joints.iter().find(|j| &j.name == n))
+            .map(|j| j.parent.link.clone());
         layout.base_body = id(m, MjtObjBase::mjOBJ_BODY, &root.unwrap_or_default())?;
         for c in &scene.cameras {
             layout.cameras.push((c.name.clone(), id(m, MjtObjBase::mjOBJ_CAMERA, &c.name)?));

@@ -70,7 +70,10 @@ fn bad_input_to_up_is_a_clear_error() {
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("no gym 'no_such_gym'") && err.contains("pick_block_plate"), "{err}");
-    let out = std::process::Command::new(integration_tests::r2g()).args(["up", GYM, "--instance", "a/b"]).output().expect("run");
+    let out = std::process::Command::new(integration_tests::r2g())
+        .args(["up", GYM, "--instance", "a/b"])
+        .output()
+        .expect("run");
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("instance name"));
 }
@@ -80,7 +83,8 @@ fn a_malformed_scene_is_refused_with_its_problem() {
     let dir = std::env::temp_dir().join(format!("r2g-bad-scene-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("tmp dir");
     let scene = dir.join("scene.toml");
-    std::fs::write(&scene, "name = \"x\"\n[robot]\nurdf = \"nope.urdf\"\ninitial_joints_rad = [0, 0, 0]\n").expect("write");
+    std::fs::write(&scene, "name = \"x\"\n[robot]\nurdf = \"nope.urdf\"\ninitial_joints_rad = [0, 0, 0]\n")
+        .expect("write");
     let out = std::process::Command::new(integration_tests::r2g())
         .args(["up", scene.to_str().expect("utf8"), "--instance", &instance("bad")])
         .output()
