@@ -126,12 +126,12 @@ impl Client {
             .subscriber_builder()
             .create()
             .map_err(ipc("sim info subscriber"))?;
-        let req_pub = ipc_schema::open_or_create_pubsub::<Request>(&node, &services.request(), Qos::QUEUE)
+        let req_pub = ipc_schema::open_or_create_pubsub::<Request>(&node, &services.request(), Qos::REQUESTS)
             .map_err(open)?
             .publisher_builder()
             .create()
             .map_err(ipc("request publisher"))?;
-        let reply_sub = ipc_schema::open_or_create_pubsub::<Reply>(&node, &services.reply(), Qos::QUEUE)
+        let reply_sub = ipc_schema::open_or_create_pubsub::<Reply>(&node, &services.reply(), Qos::REPLIES)
             .map_err(open)?
             .subscriber_builder()
             .create()
@@ -359,8 +359,9 @@ impl Client {
             r.actions[..actions.len()].copy_from_slice(actions);
         })?;
         let f = if freq_hz > 0.0 { freq_hz } else { 20.0 };
-        let nominal = Duration::from_secs_f64(actions.len() as f64 / f);
-        let reply = self.wait_reply(id, Duration::from_secs(60) + nominal * 4)?;
+        // The runtime caps a chunk's duration; this only bounds the wait if it never answers.
+        let nominal_s = (actions.len() as f64 / f).clamp(0.0, 600.0);
+        let reply = self.wait_reply(id, Duration::from_secs_f64(60.0 + 4.0 * nominal_s))?;
         Ok(self.finish(reply))
     }
 

@@ -35,6 +35,8 @@ pub struct Reference {
     pub q_rad: [f64; N],
     pub dq_rad_s: [f64; N],
     pub gripper: f64,
+    /// Where the arm must come to rest: the chunk's last waypoint (the limiter never passes it).
+    pub goal_q_rad: [f64; N],
     /// Waypoints whose segment has ended.
     pub reached: usize,
     pub finished: bool,
@@ -56,8 +58,8 @@ impl ChunkPlan {
             return Err(Rejection::TooLong { len: actions.len(), max: MAX_WAYPOINTS.min(cfg.max_chunk) });
         }
         let freq = if freq_hz == 0.0 { cfg.default_freq_hz } else { freq_hz };
-        if !(freq.is_finite() && freq > 0.0 && freq <= cfg.max_freq_hz) {
-            return Err(Rejection::BadFrequency { freq_hz, max_hz: cfg.max_freq_hz });
+        if !(freq.is_finite() && freq >= cfg.min_freq_hz && freq <= cfg.max_freq_hz) {
+            return Err(Rejection::BadFrequency { freq_hz, min_hz: cfg.min_freq_hz, max_hz: cfg.max_freq_hz });
         }
         let mut plan = Self {
             start_q,
@@ -94,6 +96,9 @@ impl ChunkPlan {
                 return Err(Rejection::GripperOutOfRange { waypoint: w, value: g });
             }
             t += seg_s;
+            if t > cfg.max_chunk_duration_s {
+                return Err(Rejection::TooSlow { waypoint: w, duration_s: t, max_s: cfg.max_chunk_duration_s });
+            }
             plan.waypoints[w] = Waypoint { q_rad: q, gripper: g };
             plan.ends_s[w] = t;
             prev = q;
@@ -136,6 +141,7 @@ impl ChunkPlan {
                 q_rad: w.q_rad,
                 dq_rad_s: [0.0; N],
                 gripper: w.gripper,
+                goal_q_rad: w.q_rad,
                 reached: self.len,
                 finished: true,
             };
@@ -151,6 +157,13 @@ impl ChunkPlan {
             q[j] = from[j] + s * (to.q_rad[j] - from[j]);
             dq[j] = (to.q_rad[j] - from[j]) / dur;
         }
-        Reference { q_rad: q, dq_rad_s: dq, gripper: to.gripper, reached: seg, finished: false }
+        Reference {
+            q_rad: q,
+            dq_rad_s: dq,
+            gripper: to.gripper,
+            goal_q_rad: self.last().q_rad,
+            reached: seg,
+            finished: false,
+        }
     }
 }

@@ -23,7 +23,8 @@ pub enum Rejection {
     Empty,
     TooLong { len: usize, max: usize },
     NotFinite { waypoint: usize, index: usize },
-    BadFrequency { freq_hz: f64, max_hz: f64 },
+    BadFrequency { freq_hz: f64, min_hz: f64, max_hz: f64 },
+    TooSlow { waypoint: usize, duration_s: f64, max_s: f64 },
     JointOutOfRange { waypoint: usize, joint: usize, value: f64, min: f64, max: f64 },
     GripperOutOfRange { waypoint: usize, value: f64 },
     UnknownControlType(u32),
@@ -42,9 +43,13 @@ impl fmt::Display for Rejection {
             Self::NotFinite { waypoint, index } => {
                 write!(f, "actions[{waypoint}][{index}] is not a finite number (NaN or infinity)")
             }
-            Self::BadFrequency { freq_hz, max_hz } => {
-                write!(f, "freq {freq_hz} Hz is not usable: give \"\" (20 Hz) or a rate in (0, {max_hz}] Hz")
+            Self::BadFrequency { freq_hz, min_hz, max_hz } => {
+                write!(f, "freq {freq_hz} Hz is not usable: give \"\" (20 Hz) or a rate in [{min_hz}, {max_hz}] Hz")
             }
+            Self::TooSlow { waypoint, duration_s, max_s } => write!(
+                f,
+                "the chunk would take {duration_s:.1} s by actions[{waypoint}]; one chunk may take at most {max_s} s: raise freq or split it"
+            ),
             Self::JointOutOfRange { waypoint, joint, value, min, max } => {
                 let by = if value < min { min - value } else { value - max };
                 write!(

@@ -18,7 +18,11 @@ pub struct LimiterConfig {
     /// Feedback gain pulling the command onto the reference, 1/s.
     pub gain_per_s: f64,
     pub default_freq_hz: f64,
+    /// Slowest waypoint rate accepted; with `max_chunk_duration_s`, bounds how long the runtime
+    /// stays busy with one chunk.
+    pub min_freq_hz: f64,
     pub max_freq_hz: f64,
+    pub max_chunk_duration_s: f64,
     pub max_chunk: usize,
 }
 
@@ -30,10 +34,21 @@ impl Default for LimiterConfig {
             accel_scale: 0.5,
             gain_per_s: 40.0,
             default_freq_hz: 20.0,
+            min_freq_hz: 0.5,
             max_freq_hz: 1000.0,
+            max_chunk_duration_s: 120.0,
             max_chunk: 256,
         }
     }
+}
+
+/// The largest speed at which, after one more tick of motion, the remaining distance `d` still
+/// covers the stopping distance at deceleration `a`: v·dt + v²/(2a) ≤ d. Discrete time keeps
+/// the reserve that the continuous √(2ad) bound lacks, so the limits hold tick by tick.
+#[inline]
+fn stop_speed(d: f64, a: f64, dt: f64) -> f64 {
+    let d = d.max(0.0);
+    (-a * dt + (a * a * dt * dt + 2.0 * a * d).sqrt()).max(0.0)
 }
 
 /// The commanded joint state, advanced one tick at a time.
@@ -67,16 +82,27 @@ impl JointTracker {
             let r = if reference.q_rad[j].is_finite() { reference.q_rad[j].clamp(lo, hi) } else { p };
             let vr = if reference.dq_rad_s[j].is_finite() { reference.dq_rad_s[j] } else { 0.0 };
             let e = r - p;
-            // Feedback that can still stop at the target with the available deceleration.
-            let fb = e.signum() * (cfg.gain_per_s * e.abs()).min((2.0 * a * e.abs()).sqrt());
+            let fb = e.signum() * (cfg.gain_per_s * e.abs()).min(stop_speed(e.abs(), a, dt_s));
             let vmax = l.dq_max_rad_s;
-            // Never a speed from which the position limit could not be reached at rest.
-            let v_up = (2.0 * a * (hi - p).max(0.0)).sqrt().min(vmax);
-            let v_dn = (2.0 * a * (p - lo).max(0.0)).sqrt().min(vmax);
+            // Never a speed from which a position limit could not be reached at rest.
+            let mut v_up = stop_speed(hi - p, a, dt_s).min(vmax);
+            let mut v_dn = stop_speed(p - lo, a, dt_s).min(vmax);
+            // Nor one that would carry the arm past the chunk's final target.
+            let g = reference.goal_q_rad[j];
+            if g.is_finite() {
+                let g = g.clamp(lo, hi);
+                if g >= p {
+                    v_up = v_up.min(stop_speed(g - p, a, dt_s));
+                } else {
+                    v_dn = v_dn.min(stop_speed(p - g, a, dt_s));
+                }
+            }
             let v_des = (vr + fb).clamp(-v_dn, v_up);
             let dv = (v_des - self.dq_rad_s[j]).clamp(-a * dt_s, a * dt_s);
             let mut v = self.dq_rad_s[j] + dv;
             let mut q = p + v * dt_s;
+            // Unreachable by construction (stop_speed keeps a stopping distance in reserve);
+            // kept as the last guard should a model or rounding ever disagree.
             if q > hi {
                 q = hi;
                 v = 0.0;

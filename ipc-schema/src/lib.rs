@@ -462,10 +462,16 @@ pub struct Qos {
 }
 
 impl Qos {
-    /// Newest-sample streams: one buffered sample, overwritten by the next.
-    pub const STREAM: Qos = Qos { history: 1, buffer: 1, max_publishers: 2, max_subscribers: 16 };
-    /// Requests and replies: a few in flight, none lost while the reader is busy.
-    pub const QUEUE: Qos = Qos { history: 0, buffer: 16, max_publishers: 16, max_subscribers: 16 };
+    /// Newest-sample streams with one trusted writer (state, command, info): one buffered
+    /// sample, overwritten by the next. A second publisher is refused by iceoryx2.
+    pub const STREAM: Qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 16 };
+    /// Resets from the runtime to the sim-host: one writer, none lost.
+    pub const CONTROL: Qos = Qos { history: 0, buffer: 16, max_publishers: 1, max_subscribers: 2 };
+    /// Requests from agents to the runtime: many writers, one reader.
+    pub const REQUESTS: Qos = Qos { history: 0, buffer: 16, max_publishers: 16, max_subscribers: 2 };
+    /// Replies from the runtime to every agent; deep enough that a busy agent's rejections
+    /// cannot push another agent's reply out while it waits.
+    pub const REPLIES: Qos = Qos { history: 0, buffer: 256, max_publishers: 1, max_subscribers: 16 };
 }
 
 pub type PubSub<T> = publish_subscribe::PortFactory<ipc::Service, T, ()>;
@@ -672,6 +678,16 @@ mod schema_tests {
         let _ours = open_or_create_pubsub::<JointCommand>(&node, &name, Qos::STREAM).expect("create");
         let err = open_or_create_pubsub::<SimState>(&node, &name, Qos::STREAM).expect_err("must be refused");
         assert!(matches!(err, SchemaError::VersionMismatch { .. }), "{err}");
+    }
+
+    #[test]
+    fn a_single_writer_stream_refuses_a_second_publisher() {
+        let node = node(&format!("schema-test4-{}", std::process::id())).expect("node");
+        let name = unique("command");
+        let svc = open_or_create_pubsub::<JointCommand>(&node, &name, Qos::STREAM).expect("create");
+        let _runtime = svc.publisher_builder().create().expect("the one writer");
+        let intruder = open_or_create_pubsub::<JointCommand>(&node, &name, Qos::STREAM).expect("open");
+        assert!(intruder.publisher_builder().create().is_err(), "a second command publisher must be refused");
     }
 
     #[test]

@@ -11,6 +11,8 @@ const SETTLE_TOL_RAD: f64 = 0.002;
 const SETTLE_VEL_RAD_S: f64 = 0.02;
 /// Longest wait for settling after the command has arrived, s.
 const SETTLE_TIMEOUT_S: f64 = 1.5;
+/// How long past the planned duration the command may take to reach the last waypoint, s.
+const MOVE_OVERTIME_S: f64 = 10.0;
 
 #[derive(Debug, Clone, Copy)]
 enum Phase {
@@ -194,6 +196,20 @@ impl Controller {
                 Phase::Moving => {
                     if self.reference.finished && tracker.settled_on(&self.reference, &self.robot) {
                         a.phase = Phase::Settling { since_s: a.t_s };
+                    } else if a.t_s > self.plan.duration_s() + MOVE_OVERTIME_S {
+                        // The command never converged: stop here rather than stay busy forever.
+                        let mut r = Reply::new(
+                            a.id,
+                            a.client,
+                            Status::Failed,
+                            "the command did not converge on the target; the arm holds where it is",
+                        );
+                        r.executed = self.reference.reached as u32;
+                        reply = Some(r);
+                        self.active = None;
+                        self.reference.q_rad = tracker.q_rad;
+                        self.reference.goal_q_rad = tracker.q_rad;
+                        self.reference.dq_rad_s = [0.0; N_JOINTS];
                     }
                 }
                 Phase::Settling { since_s } => {
@@ -252,6 +268,7 @@ impl Controller {
                 q_rad: t.q_rad,
                 dq_rad_s: [0.0; N_JOINTS],
                 gripper: self.robot.gripper_from_finger(t.finger_m),
+                goal_q_rad: t.q_rad,
                 reached: 0,
                 finished: true,
             };

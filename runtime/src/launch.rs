@@ -192,7 +192,7 @@ impl Instance {
             if sim_info.is_none() {
                 if let Some(s) = info.receive()? {
                     let s = *s;
-                    for i in 0..s.camera_count as usize {
+                    for i in 0..(s.camera_count as usize).min(ipc_schema::MAX_CAMERAS) {
                         let name = s.camera_name(i).to_string();
                         let qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 8 };
                         let sub =

@@ -78,7 +78,7 @@ impl Ports {
             cmd_pub: ipc_schema::open_or_create_pubsub::<JointCommand>(&node, &services.command(), Qos::STREAM)?
                 .publisher_builder()
                 .create()?,
-            reset_pub: ipc_schema::open_or_create_pubsub::<SimReset>(&node, &services.sim_reset(), Qos::QUEUE)?
+            reset_pub: ipc_schema::open_or_create_pubsub::<SimReset>(&node, &services.sim_reset(), Qos::CONTROL)?
                 .publisher_builder()
                 .create()?,
             robot_pub: ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)?
@@ -87,10 +87,10 @@ impl Ports {
             info_pub: ipc_schema::open_or_create_pubsub::<RuntimeInfo>(&node, &services.runtime_info(), Qos::STREAM)?
                 .publisher_builder()
                 .create()?,
-            req_sub: ipc_schema::open_or_create_pubsub::<Request>(&node, &services.request(), Qos::QUEUE)?
+            req_sub: ipc_schema::open_or_create_pubsub::<Request>(&node, &services.request(), Qos::REQUESTS)?
                 .subscriber_builder()
                 .create()?,
-            reply_pub: ipc_schema::open_or_create_pubsub::<Reply>(&node, &services.reply(), Qos::QUEUE)?
+            reply_pub: ipc_schema::open_or_create_pubsub::<Reply>(&node, &services.reply(), Qos::REPLIES)?
                 .publisher_builder()
                 .create()?,
             sim_wake: ipc_schema::open_or_create_event(&node, &services.sim_wake())?.notifier_builder().create()?,
@@ -111,21 +111,25 @@ impl Ports {
         Ok(got)
     }
 
-    #[inline]
-    fn reply(&self, r: &Reply) -> anyhow::Result<()> {
-        self.reply_pub.send_copy(*r)?;
-        self.agent_wake.notify()?;
-        Ok(())
-    }
-
     /// Serves every waiting request. Returns true when replies went out and agents need waking.
+    /// Agents come and go (and may be hostile): a failure on their ports is counted, never fatal.
     #[inline]
-    fn serve_requests(&self, ctl: &mut Controller, latest: &SimState) -> anyhow::Result<bool> {
+    fn serve_requests(&self, ctl: &mut Controller, latest: &SimState, stats: &mut TickStats) -> anyhow::Result<bool> {
         let mut replied = false;
-        while let Some(req) = self.req_sub.receive()? {
+        loop {
+            let req = match self.req_sub.receive() {
+                Ok(Some(r)) => r,
+                Ok(None) => break,
+                Err(_) => {
+                    stats.agent_port_errors += 1;
+                    break;
+                }
+            };
             let (reply, fwd) = ctl.request(&req, latest);
             if let Some(r) = reply {
-                self.reply_pub.send_copy(r)?;
+                if self.reply_pub.send_copy(r).is_err() {
+                    stats.agent_port_errors += 1;
+                }
                 replied = true;
             }
             if let controller::Forward::Reset { sim_reset_id } = fwd {
@@ -134,6 +138,38 @@ impl Ports {
             }
         }
         Ok(replied)
+    }
+
+    /// Publishes to agents; a failure is counted, never fatal.
+    #[inline]
+    fn to_agents(&self, state: RobotState, reply: Option<Reply>, stats: &mut TickStats) {
+        if self.robot_pub.send_copy(state).is_err() {
+            stats.agent_port_errors += 1;
+        }
+        if let Some(r) = reply {
+            if self.reply_pub.send_copy(r).is_err() {
+                stats.agent_port_errors += 1;
+            }
+        }
+    }
+
+    /// Takes note of agents that connected or left since the last call (iceoryx2 maps or unmaps
+    /// their segments here), so that the tick's own receive and send find nothing to set up.
+    fn update_agent_connections(&self, stats: &mut TickStats) {
+        use iceoryx2::port::update_connections::UpdateConnections;
+        let results = [
+            self.req_sub.update_connections(),
+            self.reply_pub.update_connections(),
+            self.robot_pub.update_connections(),
+            self.agent_wake.update_connections(),
+        ];
+        stats.agent_port_errors += results.iter().filter(|r| r.is_err()).count() as u64;
+    }
+
+    fn wake_agents(&self, stats: &mut TickStats) {
+        if self.agent_wake.notify().is_err() {
+            stats.agent_port_errors += 1;
+        }
     }
 }
 
@@ -198,6 +234,9 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
     Ok(stats)
 }
 
+/// How long before each deadline the wall loop registers newly connected agents.
+const CONNECT_LEAD_NS: u64 = 200_000;
+
 fn wall_loop(
     cfg: &RunConfig,
     ports: &Ports,
@@ -218,6 +257,10 @@ fn wall_loop(
     let mut last_state_ns = start;
     let mut robot_seq = 0u64;
     loop {
+        if period > 2 * CONNECT_LEAD_NS {
+            rt::sleep_until(deadline - CONNECT_LEAD_NS, 0);
+            ports.update_agent_connections(&mut stats);
+        }
         rt::sleep_until(deadline, cfg.spin_ns);
         let woke = rt::now_ns();
         stats.wake.record(woke.saturating_sub(deadline));
@@ -227,27 +270,24 @@ fn wall_loop(
         if ports.newest_state(&mut latest)? {
             last_state_ns = woke;
         }
-        let rejected = ports.serve_requests(ctl, &latest)?;
+        let rejected = ports.serve_requests(ctl, &latest, &mut stats)?;
         let (cmd, reply) = ctl.tick(&latest);
         ports.cmd_pub.send_copy(cmd)?;
         ports.sim_wake.notify()?;
         // The state first: an agent woken by the reply must already see where the arm is.
         robot_seq += 1;
-        ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Wall as u32))?;
         let wake_agents = rejected || reply.is_some();
-        if let Some(r) = reply {
-            ports.reply_pub.send_copy(r)?;
-        }
+        ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Wall as u32), reply, &mut stats);
         if robot_seq.is_multiple_of(200) {
             // Late subscribers get the limits from history; resend so they never wait long.
-            ports.info_pub.send_copy(info)?;
+            let _ = ports.info_pub.send_copy(info);
         }
         drop(scope);
         // ---- end of tick ----
         // Agents come and go, and iceoryx2 registers a new listener inside `notify` (one
         // allocation per new agent), so their wake-up follows the tick instead of joining it.
         if wake_agents {
-            ports.agent_wake.notify()?;
+            ports.wake_agents(&mut stats);
         }
 
         let done = rt::now_ns();
@@ -288,8 +328,8 @@ fn lockstep_loop(
         if sim.lost() {
             bail!("r2g-sim of instance '{}' stopped; the runtime stops too", cfg.instance);
         }
-        if ports.serve_requests(ctl, &latest)? {
-            ports.agent_wake.notify()?;
+        if ports.serve_requests(ctl, &latest, &mut stats)? {
+            ports.wake_agents(&mut stats);
         }
         if let Some(sim_id) = ctl.pending_reset() {
             // A reset takes no tick: wait for the state the simulator publishes right after it,
@@ -297,10 +337,8 @@ fn lockstep_loop(
             wait_for_state(ports, sim, &mut latest, |s| s.reset_id == sim_id)?;
             let reply = ctl.complete_reset(&latest);
             robot_seq += 1;
-            ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32))?;
-            if let Some(r) = reply {
-                ports.reply(&r)?;
-            }
+            ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), reply, &mut stats);
+            ports.wake_agents(&mut stats);
         } else if ctl.busy() {
             // Tick k consumes state k and produces command k; the sim answers with state k+1.
             let t = rt::now_ns();
@@ -311,18 +349,19 @@ fn lockstep_loop(
             ports.sim_wake.notify()?;
             wait_for_state(ports, sim, &mut latest, |s| s.command_seq >= cmd.seq)?;
             robot_seq += 1;
-            ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32))?;
-            if let Some(r) = reply {
-                ports.reply(&r)?;
+            let wake = reply.is_some();
+            ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), reply, &mut stats);
+            if wake {
+                ports.wake_agents(&mut stats);
             }
         } else {
             // Idle: simulated time stands still until an agent asks for something.
             ports.newest_state(&mut latest)?;
             if last_beat.elapsed() > Duration::from_millis(20) {
                 robot_seq += 1;
-                ports.robot_pub.send_copy(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32))?;
+                ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), None, &mut stats);
                 if robot_seq.is_multiple_of(10) {
-                    ports.info_pub.send_copy(info)?;
+                    let _ = ports.info_pub.send_copy(info);
                 }
                 last_beat = std::time::Instant::now();
             }

@@ -53,6 +53,14 @@ static ALLOC: runtime::alloc_count::CountingAlloc = runtime::alloc_count::Counti
 
 fn main() {
     let args = Args::parse();
+    if !(100..=10_000).contains(&args.period_us) || args.spin_us >= args.period_us {
+        eprintln!("r2g-control: --period-us must be 100..=10000 and --spin-us below it");
+        std::process::exit(2);
+    }
+    if args.duration_s.is_some_and(|d| !(d.is_finite() && d > 0.0 && d < 1e7)) {
+        eprintln!("r2g-control: --duration-s must be a positive number of seconds");
+        std::process::exit(2);
+    }
     if std::env::var_os("R2G_ABORT_ON_TICK_ALLOC").is_some_and(|v| v == "1") {
         runtime::alloc_count::ABORT_ON_SYSTEM_ALLOC.store(true, std::sync::atomic::Ordering::Relaxed);
     }
@@ -65,7 +73,7 @@ fn main() {
             ModeArg::Lockstep => Mode::Lockstep,
         },
         scene: args.scene.clone(),
-        period_ns: args.period_us.max(100) * 1000,
+        period_ns: args.period_us * 1000,
         spin_ns: args.spin_us * 1000,
         fifo_priority: (args.fifo_priority > 0).then_some(args.fifo_priority),
         cpu: args.cpu.or_else(runtime::rt::last_cpu),

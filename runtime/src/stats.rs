@@ -86,6 +86,8 @@ pub struct TickStats {
     pub compute: Histogram,
     pub overruns: u64,
     pub ticks: u64,
+    /// Failed sends/receives on agent-facing ports (counted, never fatal).
+    pub agent_port_errors: u64,
 }
 
 impl TickStats {
@@ -93,6 +95,7 @@ impl TickStats {
         serde_json::json!({
             "ticks": self.ticks,
             "overruns": self.overruns,
+            "agent_port_errors": self.agent_port_errors,
             "tick_allocations": crate::alloc_count::tick_allocations(),
             "tick_pool_allocations": crate::alloc_count::tick_pool_allocations(),
             "wake": self.wake.summary(),

@@ -55,7 +55,7 @@ fn run() -> anyhow::Result<()> {
     let cmd_sub = ipc_schema::open_or_create_pubsub::<JointCommand>(&node, &services.command(), Qos::STREAM)?
         .subscriber_builder()
         .create()?;
-    let reset_sub = ipc_schema::open_or_create_pubsub::<SimReset>(&node, &services.sim_reset(), Qos::QUEUE)?
+    let reset_sub = ipc_schema::open_or_create_pubsub::<SimReset>(&node, &services.sim_reset(), Qos::CONTROL)?
         .subscriber_builder()
         .create()?;
     let info_pub = ipc_schema::open_or_create_pubsub::<SimInfo>(&node, &services.sim_info(), Qos::STREAM)?

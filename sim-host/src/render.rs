@@ -15,6 +15,9 @@ use mujoco_rs::renderer::MjRenderer;
 
 use crate::scene::CameraSpec;
 
+const MAX_PIXELS: usize = ipc_schema::MAX_IMAGE_WIDTH * ipc_schema::MAX_IMAGE_HEIGHT;
+const MAX_RGB: usize = MAX_PIXELS * 3;
+
 /// What physics last handed over.
 #[derive(Debug, Default, Clone)]
 pub struct Snapshot {
@@ -136,11 +139,13 @@ pub fn run(
                 (*p).cx = spec.width as f64 / 2.0;
                 (*p).cy = spec.height as f64 / 2.0;
                 (*p).base_from_camera = Pose { position_m: bp, quat_xyzw: bq };
-                std::ptr::copy_nonoverlapping(
-                    rgb.as_ptr(),
-                    std::ptr::addr_of_mut!((*p).rgb).cast::<u8>(),
-                    n.min(rgb.len()),
-                );
+                let rgb_dst = std::ptr::addr_of_mut!((*p).rgb).cast::<u8>();
+                let used = n.min(rgb.len());
+                std::ptr::copy_nonoverlapping(rgb.as_ptr(), rgb_dst, used);
+                // Every byte initialised before assume_init: the unused tail and the depth plane
+                // (not rendered yet) are zeroed.
+                std::ptr::write_bytes(rgb_dst.add(used), 0, MAX_RGB - used);
+                std::ptr::write_bytes(std::ptr::addr_of_mut!((*p).depth_m).cast::<f32>(), 0, MAX_PIXELS);
                 sample.assume_init()
             };
             sample.send()?;

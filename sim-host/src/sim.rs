@@ -124,9 +124,8 @@ impl Sim {
 
     /// Restores the robot and every object to the scene's initial state.
     pub fn reset(&mut self) {
-        let (m, d) = (self.model.ffi() as *const _, unsafe { self.data.ffi_mut() } as *mut _);
-        // SAFETY: m and d are the live model/data pair of this Sim.
-        unsafe { mj_resetData(m, d) };
+        // SAFETY: the live model/data pair of this Sim.
+        unsafe { mj_resetData(self.model.ffi(), self.data.ffi_mut()) };
         let home_q = self.home_q;
         let finger = self.home_finger;
         let l = self.layout.clone();
@@ -145,8 +144,8 @@ impl Sim {
             ctrl[l.vel_act[i]] = 0.0;
         }
         ctrl[l.grip_act] = finger;
-        // SAFETY: as above.
-        unsafe { mj_forward(m, d) };
+        // SAFETY: the model/data pair of this Sim, taken afresh after the borrows above ended.
+        unsafe { mj_forward(self.model.ffi(), self.data.ffi_mut()) };
     }
 
     fn slice_mut(&mut self, f: impl Fn(&mut mujoco_rs::mujoco_c::mjData) -> (*mut f64, usize)) -> &mut [f64] {

@@ -90,6 +90,8 @@ def only_fx_half() -> float:
         ({"actions": [HOME + [2.0]], "type": "joint", "freq": ""}, "gripper = 2"),
         ({"actions": [HOME + [0.0]], "type": "cartesian", "freq": ""}, "type \"cartesian\" is unknown"),
         ({"actions": [HOME + [0.0]], "type": "joint", "freq": "fast"}, "is not a number"),
+        ({"actions": [HOME + [0.0]], "type": "joint", "freq": "1e-9"}, "is not usable"),
+        ({"actions": [HOME + [0.0]] * 100, "type": "joint", "freq": 0.5}, "at most 120"),
         ({"actions": [HOME + [0.0]], "type": "joint", "freq": "", "speed": 3}, "unknown key 'speed'"),
         ({"actions": [], "type": "joint", "freq": ""}, "actions is empty"),
         ({"actions": [HOME + [0.0]] * 300, "type": "joint", "freq": ""}, "at most 256"),
