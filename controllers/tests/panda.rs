@@ -46,6 +46,19 @@ fn wp(q: [f64; N], g: f64) -> [f64; 8] {
     w
 }
 
+/// Evenly spaced waypoints from `start` to `goal` (excluding `start`).
+fn ramp(start: [f64; N], goal: [f64; N], steps: usize, gripper: f64) -> Vec<[f64; 8]> {
+    (1..=steps)
+        .map(|k| {
+            let mut q = start;
+            for (j, qj) in q.iter_mut().enumerate() {
+                *qj += (goal[j] - start[j]) * k as f64 / steps as f64;
+            }
+            wp(q, gripper)
+        })
+        .collect()
+}
+
 #[test]
 fn bad_chunks_are_rejected_with_the_offending_value() {
     let (r, c) = (panda(), LimiterConfig::default());
@@ -142,15 +155,7 @@ fn a_chunk_is_tracked_to_its_last_waypoint() {
     let mut goal = HOME;
     goal[1] = -0.3;
     goal[5] = 2.0;
-    let actions: Vec<[f64; 8]> = (1..=10)
-        .map(|k| {
-            let mut q = HOME;
-            for j in 0..N {
-                q[j] += (goal[j] - HOME[j]) * k as f64 / 10.0;
-            }
-            wp(q, 1.0)
-        })
-        .collect();
+    let actions = ramp(HOME, goal, 10, 1.0);
     let plan = ChunkPlan::joint(&actions, 0.0, HOME, &r, &c).expect("valid");
     let mut t = JointTracker::at_rest(HOME, 0.04, &r, &c);
     let mut time = 0.0;
@@ -179,15 +184,7 @@ fn a_chunk_near_a_limit_stops_on_target_within_acceleration_limits() {
     goal[1] = r.joints[1].q_max_rad - c.q_margin_rad - 0.02;
     // One far waypoint and a finely sampled ramp: both must end on target without overshoot.
     for steps in [1usize, 25] {
-        let actions: Vec<[f64; 8]> = (1..=steps)
-            .map(|k| {
-                let mut q = start;
-                for j in 0..N {
-                    q[j] += (goal[j] - start[j]) * k as f64 / steps as f64;
-                }
-                wp(q, -1.0)
-            })
-            .collect();
+        let actions = ramp(start, goal, steps, -1.0);
         let plan = ChunkPlan::joint(&actions, 0.0, start, &r, &c).expect("valid");
         let mut t = JointTracker::at_rest(start, 0.04, &r, &c);
         let mut time = 0.0;
