@@ -1,5 +1,6 @@
 #![doc = include_str!("../README.md")]
 
+pub mod ipc;
 pub mod tick;
 
 /// Prints a table: a header row and rows of cells, columns padded to fit.

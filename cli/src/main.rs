@@ -62,6 +62,25 @@ enum BenchCmd {
         #[arg(long, default_value = "pick_block_plate")]
         gym: String,
     },
+    /// Publish→receive latency between two processes for a robot state, a 640×480 RGB frame
+    /// and an RGB-D frame, through iceoryx2 (zero-copy), a Unix domain socket and TCP loopback.
+    Ipc {
+        /// Only the pairs whose "transport:payload" contains this (e.g. "uds", ":frame").
+        #[arg(long)]
+        only: Option<String>,
+    },
+    /// The receiving process of `r2g bench ipc` (started by it).
+    #[command(hide = true)]
+    IpcPeer {
+        #[arg(long)]
+        transport: String,
+        #[arg(long)]
+        payload: String,
+        #[arg(long)]
+        addr: String,
+        #[arg(long, default_value_t = 1)]
+        cpu: usize,
+    },
 }
 
 fn main() {
@@ -71,6 +90,16 @@ fn main() {
         Cmd::Up { gym, mode, instance, render_hz } => up(&gym, mode, &instance, render_hz),
         Cmd::Gyms => gyms(),
         Cmd::Bench { which: BenchCmd::Tick { seconds, gym } } => bench::tick::run(&gym, seconds).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::Ipc { only } } => bench::ipc::run(only.as_deref()).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::IpcPeer { transport, payload, addr, cpu } } => (|| {
+            bench::ipc::peer(
+                bench::ipc::Transport::parse(&transport)?,
+                bench::ipc::Payload::parse(&payload)?,
+                &addr,
+                cpu,
+            )
+        })()
+        .map(|_| 0),
     };
     match r {
         Ok(code) => std::process::exit(code),
