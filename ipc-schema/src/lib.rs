@@ -198,19 +198,11 @@ pub struct Reply {
 
 impl Reply {
     pub fn new(id: u64, client: u64, status: Status, reason: &str) -> Self {
-        let mut r = Self {
-            id,
-            client,
-            status: status as u32,
-            executed: 0,
-            final_joint_error_rad: 0.0,
-            reason: [0; REASON_LEN],
-        };
-        write_str(&mut r.reason, reason);
-        r
+        Self::formatted(id, client, status, format_args!("{reason}"))
     }
-    /// Like [`Reply::new`], formatting the reason straight into the fixed buffer (no allocation;
-    /// used on the tick path).
+
+    /// A reply whose reason is formatted straight into the fixed buffer, cut at a character
+    /// boundary if too long. Allocation-free, so the tick path can use it.
     pub fn formatted(id: u64, client: u64, status: Status, reason: core::fmt::Arguments<'_>) -> Self {
         let mut r = Self {
             id,
