@@ -70,9 +70,8 @@ struct Ports {
 impl Ports {
     fn open(services: &Services) -> anyhow::Result<Self> {
         let node = ipc_schema::node(&process::control_node(&services.instance))?;
-        let ps = |n: &str| n.to_string();
         Ok(Self {
-            state_sub: ipc_schema::open_or_create_pubsub::<SimState>(&node, &ps(&services.sim_state()), Qos::STREAM)?
+            state_sub: ipc_schema::open_or_create_pubsub::<SimState>(&node, &services.sim_state(), Qos::STREAM)?
                 .subscriber_builder()
                 .create()?,
             cmd_pub: ipc_schema::open_or_create_pubsub::<JointCommand>(&node, &services.command(), Qos::STREAM)?

@@ -77,7 +77,6 @@ fn run() -> anyhow::Result<()> {
     info_pub.send_copy(info)?;
 
     let stop = Arc::new(AtomicBool::new(false));
-    let render_ready = Arc::new(AtomicBool::new(!render_on));
     let snapshot = Arc::new(Mutex::new(Snapshot::default()));
     let render_thread = if render_on {
         let cfg = RenderConfig {
@@ -86,9 +85,9 @@ fn run() -> anyhow::Result<()> {
             base_body: sim.layout.base_body,
             rate_hz: args.render_hz,
         };
-        let (model, snap, st, rd) = (sim.model.clone(), snapshot.clone(), stop.clone(), render_ready.clone());
+        let (model, snap, st) = (sim.model.clone(), snapshot.clone(), stop.clone());
         Some(std::thread::Builder::new().name("render".into()).spawn(move || {
-            if let Err(e) = render::run(model, snap, cfg, st, rd) {
+            if let Err(e) = render::run(model, snap, cfg, st) {
                 eprintln!("r2g-sim: rendering stopped: {e:#}");
             }
         })?)
@@ -171,6 +170,5 @@ fn run() -> anyhow::Result<()> {
     if let Some(t) = render_thread {
         let _ = t.join();
     }
-    let _ = render_ready;
     result
 }

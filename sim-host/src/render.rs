@@ -39,7 +39,6 @@ pub fn run(
     snapshot: Arc<Mutex<Snapshot>>,
     cfg: RenderConfig,
     stop: Arc<AtomicBool>,
-    ready: Arc<AtomicBool>,
 ) -> anyhow::Result<()> {
     let node = ipc_schema::node(&format!("r2g-render-{}", cfg.services.instance))?;
     let wake = ipc_schema::open_or_create_event(&node, &cfg.services.agent_wake())?.notifier_builder().create()?;
@@ -150,7 +149,6 @@ pub fn run(
             };
             sample.send()?;
         }
-        ready.store(true, Ordering::Relaxed);
         let _ = wake.notify();
     }
     Ok(())
