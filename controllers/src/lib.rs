@@ -2,14 +2,16 @@
 
 pub mod chunk;
 pub mod error;
+pub mod kinematics;
 pub mod limiter;
 pub mod math;
 pub mod robot;
 
 pub use chunk::{ChunkPlan, Waypoint};
 pub use error::{Error, Rejection};
+pub use kinematics::{FrameId, Jacobian, Kinematics};
 pub use limiter::{JointTracker, LimiterConfig};
-pub use robot::{JointLimits, RobotModel};
+pub use robot::{CartesianLimits, JointLimits, Profile, RobotModel};
 
 /// Arm joints of the supported robots.
 pub const N: usize = 7;

@@ -1,13 +1,12 @@
 //! The controllers against the shipped Panda description.
 
 use controllers::chunk::Reference;
-use controllers::robot::{PANDA_DDQ_MAX, PANDA_JERK_MAX};
-use controllers::{ChunkPlan, JointTracker, LimiterConfig, Rejection, RobotModel, N};
+use controllers::{ChunkPlan, JointTracker, LimiterConfig, Profile, Rejection, RobotModel, N};
 
 fn panda() -> RobotModel {
     let xml =
         std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../robots/panda/panda.urdf")).expect("URDF");
-    RobotModel::from_urdf_str(&xml, "hand_tcp", PANDA_DDQ_MAX, PANDA_JERK_MAX).expect("model")
+    RobotModel::from_urdf_str(&xml, "hand_tcp", Profile::Panda).expect("model")
 }
 
 const HOME: [f64; N] = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785];
@@ -29,13 +28,13 @@ fn urdf_gives_the_published_panda_limits() {
 
 #[test]
 fn malformed_urdf_is_a_clear_error() {
-    let e = RobotModel::from_urdf_str("<robot name='x'><link", "tcp", PANDA_DDQ_MAX, PANDA_JERK_MAX).unwrap_err();
+    let e = RobotModel::from_urdf_str("<robot name='x'><link", "tcp", Profile::Panda).unwrap_err();
     assert!(e.to_string().contains("URDF does not parse"), "{e}");
     let xml =
         std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../robots/panda/panda.urdf")).expect("URDF");
-    let e = RobotModel::from_urdf_str(&xml, "no_such_link", PANDA_DDQ_MAX, PANDA_JERK_MAX).unwrap_err();
+    let e = RobotModel::from_urdf_str(&xml, "no_such_link", Profile::Panda).unwrap_err();
     assert!(e.to_string().contains("no link named 'no_such_link'"), "{e}");
-    let e = RobotModel::from_urdf_str(&xml, "link4", PANDA_DDQ_MAX, PANDA_JERK_MAX).unwrap_err();
+    let e = RobotModel::from_urdf_str(&xml, "link4", Profile::Panda).unwrap_err();
     assert!(e.to_string().contains("4 revolute joints, expected 7"), "{e}");
 }
 
@@ -205,4 +204,23 @@ fn a_chunk_near_a_limit_stops_on_target_within_acceleration_limits() {
             assert!(time < 20.0, "never settled");
         }
     }
+}
+
+#[test]
+fn fk_reproduces_the_published_check_values() {
+    use std::f64::consts::PI;
+    let r = panda();
+    let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9);
+    let same_rot = |a: [f64; 4], b: [f64; 4]| close(&a, &b) || close(&a, &b.map(|v| -v));
+    let home = [0.0, -PI / 4.0, 0.0, -3.0 * PI / 4.0, 0.0, PI / 2.0, PI / 4.0];
+    let (p, q) = controllers::kinematics::to_arrays(&r.kin.fk(&home, r.kin.tcp));
+    let published = [0.30689, 0.0, 0.48688];
+    assert!(p.iter().zip(published).all(|(a, b)| (a - b).abs() < 5e-6), "{p:?}");
+    assert!(same_rot(q, [1.0, 0.0, 0.0, 0.0]), "{q:?}");
+    let zero = [0.0; N];
+    let (p, _) = controllers::kinematics::to_arrays(&r.kin.fk(&zero, r.kin.flange));
+    assert!(close(&p, &[0.088, 0.0, 0.926]), "{p:?}");
+    let (p, q) = controllers::kinematics::to_arrays(&r.kin.fk(&zero, r.kin.tcp));
+    assert!(close(&p, &[0.088, 0.0, 0.8226]), "{p:?}");
+    assert!(same_rot(q, [0.923879532511287, 0.38268343236509, 0.0, 0.0]), "{q:?}");
 }

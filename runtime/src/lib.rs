@@ -44,7 +44,7 @@ pub fn robot_from_scene(scene: &Path) -> anyhow::Result<RobotModel> {
     let tcp = robot.get("tcp_link").and_then(|u| u.as_str()).unwrap_or("hand_tcp");
     let urdf_path = scene.parent().unwrap_or(Path::new(".")).join(urdf);
     let xml = std::fs::read_to_string(&urdf_path).with_context(|| format!("reading URDF {}", urdf_path.display()))?;
-    Ok(RobotModel::from_urdf_str(&xml, tcp, controllers::robot::PANDA_DDQ_MAX, controllers::robot::PANDA_JERK_MAX)?)
+    Ok(RobotModel::from_urdf_str(&xml, tcp, controllers::Profile::Panda)?)
 }
 
 type Pub<T> = iceoryx2::port::publisher::Publisher<iceoryx2::prelude::ipc::Service, T, ()>;

@@ -63,12 +63,7 @@ impl Sim {
         let scene = Scene::load(scene_path)?;
         let urdf = std::fs::read_to_string(&scene.robot.urdf)
             .map_err(|source| crate::scene::SceneError::Urdf { path: scene.robot.urdf.clone(), source })?;
-        let robot = RobotModel::from_urdf_str(
-            &urdf,
-            &scene.robot.tcp_link,
-            controllers::robot::PANDA_DDQ_MAX,
-            controllers::robot::PANDA_JERK_MAX,
-        )?;
+        let robot = RobotModel::from_urdf_str(&urdf, &scene.robot.tcp_link, controllers::Profile::Panda)?;
         let xml = mjcf::compile(&scene, &urdf, &robot.joint_names, &robot.finger_joint)?;
         let model = Arc::new(MjModel::from_xml_string(&xml).map_err(|e| SimError::Compile(format!("{e}")))?);
         let m: &MjModel = &model;
