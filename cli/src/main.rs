@@ -9,6 +9,10 @@ use ipc_schema::process;
 use ipc_schema::Mode;
 use runtime::launch::{self, Instance, UpOptions};
 
+/// Counts allocations inside ticks, so `bench tick-compute` can report them.
+#[global_allocator]
+static ALLOC: runtime::alloc_count::CountingAlloc = runtime::alloc_count::CountingAlloc;
+
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum ModeArg {
     /// Real time: the runtime ticks at 1 kHz on the wall clock.
@@ -69,6 +73,20 @@ enum BenchCmd {
         #[arg(long)]
         only: Option<String>,
     },
+    /// Cost of one controller tick (interpolation, limiter, checks) following valid chunks,
+    /// with allocations inside ticks counted, beside FK + Jacobian alone.
+    TickCompute {
+        #[arg(long, default_value_t = 200_000)]
+        ticks: u64,
+    },
+    /// Adversarial chunks (NaN, infinities, huge jumps, wrong lengths, absurd rates, resets,
+    /// chunks mid-motion) through the controller; every command judged by a limit monitor.
+    LimiterFuzz {
+        #[arg(long, default_value_t = 1_000_000)]
+        chunks: u64,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
     /// The receiving process of `r2g bench ipc` (started by it).
     #[command(hide = true)]
     IpcPeer {
@@ -90,6 +108,10 @@ fn main() {
         Cmd::Up { gym, mode, instance, render_hz } => up(&gym, mode, &instance, render_hz),
         Cmd::Gyms => gyms(),
         Cmd::Bench { which: BenchCmd::Tick { seconds, gym } } => bench::tick::run(&gym, seconds).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::TickCompute { ticks } } => bench::control::tick_compute(ticks).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::LimiterFuzz { chunks, seed } } => {
+            bench::control::limiter_fuzz(chunks, seed).map(|v| if v["violations"] == 0 { 0 } else { 1 })
+        }
         Cmd::Bench { which: BenchCmd::Ipc { only } } => bench::ipc::run(only.as_deref()).map(|_| 0),
         Cmd::Bench { which: BenchCmd::IpcPeer { transport, payload, addr, cpu } } => (|| {
             bench::ipc::peer(

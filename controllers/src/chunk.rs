@@ -26,6 +26,9 @@ pub struct ChunkPlan {
     waypoints: [Waypoint; MAX_WAYPOINTS],
     /// End time of each segment, s from the start of the chunk.
     ends_s: [f64; MAX_WAYPOINTS],
+    /// Per segment and joint: where that joint's motion in one direction ends (it turns back
+    /// there, or the chunk ends). The limiter never carries a joint past it.
+    turns: [[f64; N]; MAX_WAYPOINTS],
     len: usize,
 }
 
@@ -35,7 +38,8 @@ pub struct Reference {
     pub q_rad: [f64; N],
     pub dq_rad_s: [f64; N],
     pub gripper: f64,
-    /// Where the arm must come to rest: the chunk's last waypoint (the limiter never passes it).
+    /// Per joint, where the current one-directional stretch of the reference ends: the next
+    /// waypoint at which it turns back, or the last one. The limiter never passes it.
     pub goal_q_rad: [f64; N],
     /// Waypoints whose segment has ended.
     pub reached: usize,
@@ -65,6 +69,7 @@ impl ChunkPlan {
             start_q,
             waypoints: [Waypoint { q_rad: [0.0; N], gripper: 0.0 }; MAX_WAYPOINTS],
             ends_s: [0.0; MAX_WAYPOINTS],
+            turns: [[0.0; N]; MAX_WAYPOINTS],
             len: actions.len(),
         };
         let mut prev = start_q;
@@ -103,14 +108,30 @@ impl ChunkPlan {
             plan.ends_s[w] = t;
             prev = q;
         }
+        plan.find_turns();
         Ok(plan)
+    }
+
+    /// Fills `turns` backwards: a segment inherits the next one's turn point while the joint
+    /// keeps moving the same way, and ends at its own waypoint otherwise (a turn or a pause).
+    #[allow(clippy::needless_range_loop)] // joint j indexes three arrays
+    fn find_turns(&mut self) {
+        let n = self.len;
+        self.turns[n - 1] = self.waypoints[n - 1].q_rad;
+        for w in (0..n - 1).rev() {
+            let from = if w == 0 { self.start_q } else { self.waypoints[w - 1].q_rad };
+            for j in 0..N {
+                let here = self.waypoints[w].q_rad[j] - from[j];
+                let next = self.waypoints[w + 1].q_rad[j] - self.waypoints[w].q_rad[j];
+                self.turns[w][j] = if here * next > 0.0 { self.turns[w + 1][j] } else { self.waypoints[w].q_rad[j] };
+            }
+        }
     }
 
     /// A plan that holds one configuration; used as the idle placeholder.
     pub fn hold(q_rad: [f64; N], gripper: f64) -> Self {
-        let mut waypoints = [Waypoint { q_rad, gripper }; MAX_WAYPOINTS];
-        waypoints[0] = Waypoint { q_rad, gripper };
-        Self { start_q: q_rad, waypoints, ends_s: [0.0; MAX_WAYPOINTS], len: 1 }
+        let waypoints = [Waypoint { q_rad, gripper }; MAX_WAYPOINTS];
+        Self { start_q: q_rad, waypoints, ends_s: [0.0; MAX_WAYPOINTS], turns: [q_rad; MAX_WAYPOINTS], len: 1 }
     }
 
     pub fn len(&self) -> usize {
@@ -161,7 +182,7 @@ impl ChunkPlan {
             q_rad: q,
             dq_rad_s: dq,
             gripper: to.gripper,
-            goal_q_rad: self.last().q_rad,
+            goal_q_rad: self.turns[seg],
             reached: seg,
             finished: false,
         }

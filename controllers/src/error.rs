@@ -33,6 +33,25 @@ pub enum Rejection {
     Busy,
 }
 
+impl Rejection {
+    /// A short stable name of the reason, for counting.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Self::Empty => "empty",
+            Self::TooLong { .. } => "too_long",
+            Self::NotFinite { .. } => "not_finite",
+            Self::BadFrequency { .. } => "bad_frequency",
+            Self::TooSlow { .. } => "too_slow",
+            Self::JointOutOfRange { .. } => "joint_out_of_range",
+            Self::GripperOutOfRange { .. } => "gripper_out_of_range",
+            Self::UnknownControlType(_) => "unknown_control_type",
+            Self::UnsupportedControlType(_) => "unsupported_control_type",
+            Self::ControlTypeLocked { .. } => "control_type_locked",
+            Self::Busy => "busy",
+        }
+    }
+}
+
 impl fmt::Display for Rejection {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
@@ -68,7 +87,7 @@ impl fmt::Display for Rejection {
             Self::ControlTypeLocked { locked, requested } => {
                 write!(f, "this episode uses \"{locked}\" control; \"{requested}\" is rejected until reset()")
             }
-            Self::Busy => write!(f, "another request is executing: wait for it to finish"),
+            Self::Busy => write!(f, "another client's request is executing: wait for it to finish"),
         }
     }
 }

@@ -4,6 +4,7 @@
 //! between two arm joints are folded into it) plus a unit axis; every link reachable from the
 //! root without passing a movable joint off the chain is a named frame. All poses are in the
 //! frame of the URDF root link (the robot base). Nothing here allocates after construction.
+#![allow(clippy::needless_range_loop)] // joint i indexes origins, axes, q and frames alike
 
 use std::collections::HashMap;
 

@@ -5,6 +5,7 @@ pub mod error;
 pub mod kinematics;
 pub mod limiter;
 pub mod math;
+pub mod monitor;
 pub mod robot;
 
 pub use chunk::{ChunkPlan, Waypoint};

@@ -1,9 +1,16 @@
-//! The last stage before a command leaves the runtime: a per-joint tracker whose output never
-//! leaves the position range (minus margin) and never exceeds the velocity and acceleration
-//! limits, whatever reference it is given. Jerk limiting comes with the Controllers issue.
+//! The last stage before a command leaves the runtime: a per-joint, jerk-limited tracker whose
+//! output never leaves the position range (minus margin) and never exceeds the velocity,
+//! acceleration or jerk limits, whatever reference it is given.
+//!
+//! Each tick proposes the acceleration that best follows the reference, then asks whether the
+//! arm could still come to rest inside every limit from the state that proposal leads to, by
+//! running the braking policy forward (a handful of ticks, the constant-deceleration stretch in
+//! closed form). If it could not, the tick takes the braking policy's own step instead. The
+//! braking policy depends on the state alone, so from a state that passed the check its step
+//! stays on the checked path: the invariant holds tick after tick, in discrete time.
 
 use crate::chunk::Reference;
-use crate::robot::RobotModel;
+use crate::robot::{JointLimits, RobotModel};
 use crate::N;
 
 /// Settings of the limiter and of chunk timing. Defaults suit a Panda in simulation.
@@ -15,8 +22,14 @@ pub struct LimiterConfig {
     pub speed_scale: f64,
     /// Fraction of each joint's acceleration limit the tracker uses.
     pub accel_scale: f64,
+    /// Fraction of each joint's jerk limit the tracker uses.
+    pub jerk_scale: f64,
+    /// Fraction of the published TCP speed limits the tracker aims for.
+    pub tcp_speed_scale: f64,
     /// Feedback gain pulling the command onto the reference, 1/s.
     pub gain_per_s: f64,
+    /// Gain of the inner velocity loop, 1/s.
+    pub velocity_gain_per_s: f64,
     pub default_freq_hz: f64,
     /// Slowest waypoint rate accepted; with `max_chunk_duration_s`, bounds how long the runtime
     /// stays busy with one chunk.
@@ -32,7 +45,10 @@ impl Default for LimiterConfig {
             q_margin_rad: 0.01,
             speed_scale: 0.5,
             accel_scale: 0.5,
+            jerk_scale: 0.5,
+            tcp_speed_scale: 0.5,
             gain_per_s: 40.0,
+            velocity_gain_per_s: 200.0,
             default_freq_hz: 20.0,
             min_freq_hz: 0.5,
             max_freq_hz: 1000.0,
@@ -43,12 +59,116 @@ impl Default for LimiterConfig {
 }
 
 /// The largest speed at which, after one more tick of motion, the remaining distance `d` still
-/// covers the stopping distance at deceleration `a`: v·dt + v²/(2a) ≤ d. Discrete time keeps
-/// the reserve that the continuous √(2ad) bound lacks, so the limits hold tick by tick.
+/// covers the stopping distance at deceleration `a`: v·dt + v²/(2a) ≤ d. Used to shape the
+/// desired motion; safety itself comes from [`can_stop`].
 #[inline]
 fn stop_speed(d: f64, a: f64, dt: f64) -> f64 {
     let d = d.max(0.0);
     (-a * dt + (a * a * dt * dt + 2.0 * a * d).sqrt()).max(0.0)
+}
+
+/// What the limiter needs to know about one joint during one tick.
+#[derive(Debug, Clone, Copy)]
+struct Axis {
+    lim: JointLimits,
+    lo: f64,
+    hi: f64,
+    acc: f64,
+    jerk: f64,
+    dt: f64,
+}
+
+/// Slack kept inside the position range for rounding and the last creep to rest, rad.
+const REST_SLACK_RAD: f64 = 1e-7;
+/// Velocity loop of the braking policy near rest: a = −v/(4·dt) when that is within limits.
+const BRAKE_GAIN_TICKS: f64 = 4.0;
+/// Ticks the check may simulate one by one (the constant-deceleration stretch is one step).
+const MAX_CHECK_TICKS: usize = 400;
+
+impl Axis {
+    fn new(lim: JointLimits, cfg: &LimiterConfig, dt: f64) -> Self {
+        Self {
+            lim,
+            lo: lim.q_min_rad + cfg.q_margin_rad,
+            hi: lim.q_max_rad - cfg.q_margin_rad,
+            acc: cfg.accel_scale * lim.ddq_max_rad_s2,
+            jerk: cfg.jerk_scale * lim.jerk_max_rad_s3,
+            dt,
+        }
+    }
+
+    /// The acceleration one jerk-limited tick can reach from `a` toward `target`.
+    #[inline]
+    fn toward(&self, a: f64, target: f64) -> f64 {
+        let step = self.jerk * self.dt;
+        let next = if (target - a).abs() <= step { target } else { a + step.copysign(target - a) };
+        next.clamp(-self.acc, self.acc)
+    }
+
+    /// The braking policy: drive the velocity to zero as fast as the limits allow, easing in
+    /// near rest. A function of (v, a) only, which is what makes the safety check exact.
+    #[inline]
+    fn brake(&self, v: f64, a: f64) -> f64 {
+        // The velocity reached if the acceleration were ramped to zero right away.
+        let v_end = v + a * a.abs() / (2.0 * self.jerk);
+        let target = (-v_end / (BRAKE_GAIN_TICKS * self.dt)).clamp(-self.acc, self.acc);
+        self.toward(a, target)
+    }
+
+    #[inline]
+    fn velocity_ok(&self, p: f64, v: f64) -> bool {
+        let (lo, hi) = self.lim.velocity_bounds(p);
+        v >= lo * (1.0 + 1e-12) - 1e-12 && v <= hi * (1.0 + 1e-12) + 1e-12
+    }
+
+    /// Whether the braking policy, started at (p, v, a), comes to rest without leaving the
+    /// position range or exceeding the velocity bounds on the way.
+    fn can_stop(&self, mut p: f64, mut v: f64, mut a: f64) -> bool {
+        let (lo, hi, dt) = (self.lo + REST_SLACK_RAD, self.hi - REST_SLACK_RAD, self.dt);
+        for _ in 0..MAX_CHECK_TICKS {
+            if !(p >= lo && p <= hi && self.velocity_ok(p, v)) {
+                return false;
+            }
+            if v.abs() < 1e-9 && a.abs() < 1e-6 {
+                return true;
+            }
+            // A stretch at full deceleration, done in closed form: k ticks of a = ∓acc.
+            let s = v.signum();
+            if a == -s * self.acc {
+                let v_end = v.abs() - self.acc * self.acc / (2.0 * self.jerk);
+                let free = (v_end - BRAKE_GAIN_TICKS * dt * self.acc) / (self.acc * dt);
+                let k = free.floor() - 1.0;
+                if k >= 1.0 {
+                    let dv = self.acc * dt;
+                    let p_end = p + s * dt * (k * v.abs() - dv * k * (k + 1.0) / 2.0);
+                    let v_end = v - s * k * dv;
+                    if !(p_end >= lo && p_end <= hi && self.stretch_within_velocity(p, v, p_end)) {
+                        return false;
+                    }
+                    p = p_end;
+                    v = v_end;
+                    continue;
+                }
+            }
+            a = self.brake(v, a);
+            v += a * dt;
+            p += v * dt;
+        }
+        false
+    }
+
+    /// Position-dependent velocity bounds (FR3) along a constant-deceleration stretch from
+    /// (p0, v0) to p1; |v| only falls along it, so constant bounds need no look.
+    fn stretch_within_velocity(&self, p0: f64, v0: f64, p1: f64) -> bool {
+        if self.lim.ddq_dec_rad_s2 <= 0.0 {
+            return true;
+        }
+        (1..=8).all(|i| {
+            let p = p0 + (p1 - p0) * f64::from(i) / 8.0;
+            let v = v0.signum() * (v0 * v0 - 2.0 * self.acc * (p - p0).abs()).max(0.0).sqrt();
+            self.velocity_ok(p, v)
+        })
+    }
 }
 
 /// The commanded joint state, advanced one tick at a time.
@@ -56,7 +176,10 @@ fn stop_speed(d: f64, a: f64, dt: f64) -> f64 {
 pub struct JointTracker {
     pub q_rad: [f64; N],
     pub dq_rad_s: [f64; N],
+    pub ddq_rad_s2: [f64; N],
     pub finger_m: f64,
+    /// Ticks on which the braking policy overrode the tracking step (diagnostics).
+    pub braking_ticks: u64,
 }
 
 impl JointTracker {
@@ -65,53 +188,68 @@ impl JointTracker {
         let mut q = q_rad;
         for (qj, l) in q.iter_mut().zip(&robot.joints) {
             let v = if qj.is_finite() { *qj } else { 0.5 * (l.q_min_rad + l.q_max_rad) };
-            *qj = v.clamp(l.q_min_rad + cfg.q_margin_rad, l.q_max_rad - cfg.q_margin_rad);
+            *qj = v.clamp(l.q_min_rad + cfg.q_margin_rad + 1e-6, l.q_max_rad - cfg.q_margin_rad - 1e-6);
         }
         let finger = if finger_m.is_finite() { finger_m.clamp(0.0, robot.finger_max_m) } else { 0.0 };
-        Self { q_rad: q, dq_rad_s: [0.0; N], finger_m: finger }
+        Self { q_rad: q, dq_rad_s: [0.0; N], ddq_rad_s2: [0.0; N], finger_m: finger, braking_ticks: 0 }
     }
 
     /// One tick of `dt_s`: follow `reference` within every limit. Allocation-free.
     #[allow(clippy::needless_range_loop)] // joint j indexes limits, reference and state alike
     pub fn step(&mut self, reference: &Reference, dt_s: f64, robot: &RobotModel, cfg: &LimiterConfig) {
+        let mut v_des = [0.0; N];
         for j in 0..N {
-            let l = robot.joints[j];
-            let a = cfg.accel_scale * l.ddq_max_rad_s2;
-            let (lo, hi) = (l.q_min_rad + cfg.q_margin_rad, l.q_max_rad - cfg.q_margin_rad);
+            let x = Axis::new(robot.joints[j], cfg, dt_s);
+            let track = 0.8 * x.acc;
             let p = self.q_rad[j];
-            let r = if reference.q_rad[j].is_finite() { reference.q_rad[j].clamp(lo, hi) } else { p };
+            let r = if reference.q_rad[j].is_finite() { reference.q_rad[j].clamp(x.lo, x.hi) } else { p };
             let vr = if reference.dq_rad_s[j].is_finite() { reference.dq_rad_s[j] } else { 0.0 };
             let e = r - p;
-            let fb = e.signum() * (cfg.gain_per_s * e.abs()).min(stop_speed(e.abs(), a, dt_s));
-            let vmax = l.dq_max_rad_s;
-            // Never a speed from which a position limit could not be reached at rest.
-            let mut v_up = stop_speed(hi - p, a, dt_s).min(vmax);
-            let mut v_dn = stop_speed(p - lo, a, dt_s).min(vmax);
-            // Nor one that would carry the arm past the chunk's final target.
+            let fb = e.signum() * (cfg.gain_per_s * e.abs()).min(stop_speed(e.abs(), track, dt_s));
+            let (vlo, vhi) = x.lim.velocity_bounds(p);
+            // Aim below the bounds and stop short of the position limits with room to spare.
+            let mut v_up = (0.95 * vhi).min(stop_speed(x.hi - p, track, dt_s));
+            let mut v_dn = (-0.95 * vlo).min(stop_speed(p - x.lo, track, dt_s));
+            // Nor past the point where the reference turns back or ends.
             let g = reference.goal_q_rad[j];
             if g.is_finite() {
-                let g = g.clamp(lo, hi);
+                let g = g.clamp(x.lo, x.hi);
                 if g >= p {
-                    v_up = v_up.min(stop_speed(g - p, a, dt_s));
+                    v_up = v_up.min(stop_speed(g - p, track, dt_s));
                 } else {
-                    v_dn = v_dn.min(stop_speed(p - g, a, dt_s));
+                    v_dn = v_dn.min(stop_speed(p - g, track, dt_s));
                 }
             }
-            let v_des = (vr + fb).clamp(-v_dn, v_up);
-            let dv = (v_des - self.dq_rad_s[j]).clamp(-a * dt_s, a * dt_s);
-            let mut v = self.dq_rad_s[j] + dv;
-            let mut q = p + v * dt_s;
-            // Unreachable by construction (stop_speed keeps a stopping distance in reserve);
-            // kept as the last guard should a model or rounding ever disagree.
-            if q > hi {
-                q = hi;
-                v = 0.0;
-            } else if q < lo {
-                q = lo;
-                v = 0.0;
+            v_des[j] = (vr + fb).clamp(-v_dn, v_up);
+        }
+        self.limit_tcp_speed(&mut v_des, robot, cfg);
+        for j in 0..N {
+            let x = Axis::new(robot.joints[j], cfg, dt_s);
+            let (p, v, a) = (self.q_rad[j], self.dq_rad_s[j], self.ddq_rad_s2[j]);
+            // Inner loop: the acceleration toward the desired velocity, eased so that
+            // ramping it back to zero lands on that velocity instead of past it.
+            let dv = v_des[j] - v;
+            let a_des = dv.signum() * (cfg.velocity_gain_per_s * dv.abs()).min(stop_speed(dv.abs(), x.jerk, dt_s));
+            let mut a1 = x.toward(a, a_des);
+            // The check also keeps the arm from passing the point where the reference turns
+            // back or ends (braking lands short of it; tracking then closes the rest).
+            let mut bounded = x;
+            let g = reference.goal_q_rad[j];
+            if g.is_finite() {
+                if g >= p {
+                    bounded.hi = bounded.hi.min(g);
+                } else {
+                    bounded.lo = bounded.lo.max(g);
+                }
             }
-            self.q_rad[j] = q;
-            self.dq_rad_s[j] = v;
+            if !bounded.can_stop(p + (v + a1 * dt_s) * dt_s, v + a1 * dt_s, a1) {
+                a1 = x.brake(v, a);
+                self.braking_ticks += 1;
+            }
+            let v1 = v + a1 * dt_s;
+            self.ddq_rad_s2[j] = a1;
+            self.dq_rad_s[j] = v1;
+            self.q_rad[j] = p + v1 * dt_s;
         }
         let target = robot.finger_from_gripper(if reference.gripper.is_finite() { reference.gripper } else { 0.0 });
         let step = robot.finger_speed_m_s * dt_s;
@@ -119,10 +257,28 @@ impl JointTracker {
         self.finger_m = self.finger_m.clamp(0.0, robot.finger_max_m);
     }
 
+    /// Scales the desired joint velocity so that the TCP stays under its speed limits.
+    fn limit_tcp_speed(&self, v_des: &mut [f64; N], robot: &RobotModel, cfg: &LimiterConfig) {
+        let (_, jac) = robot.kin.jacobian(&self.q_rad, robot.kin.tcp);
+        let v = nalgebra::SVector::<f64, N>::from_column_slice(v_des);
+        let twist = jac * v;
+        let lin = twist.fixed_rows::<3>(0).norm();
+        let ang = twist.fixed_rows::<3>(3).norm();
+        let cap_lin = cfg.tcp_speed_scale * robot.cartesian.v_m_s;
+        let cap_ang = cfg.tcp_speed_scale * robot.cartesian.w_rad_s;
+        let scale = (cap_lin / lin).min(cap_ang / ang).min(1.0);
+        if scale < 1.0 {
+            v_des.iter_mut().for_each(|v| *v *= scale);
+        }
+    }
+
     /// True once the command sits on `reference` and has stopped.
     pub fn settled_on(&self, reference: &Reference, robot: &RobotModel) -> bool {
         let target = robot.finger_from_gripper(reference.gripper);
-        (0..N).all(|j| (self.q_rad[j] - reference.q_rad[j]).abs() < 1e-6 && self.dq_rad_s[j].abs() < 1e-4)
-            && (self.finger_m - target).abs() < 1e-6
+        (0..N).all(|j| {
+            (self.q_rad[j] - reference.q_rad[j]).abs() < 1e-6
+                && self.dq_rad_s[j].abs() < 1e-4
+                && self.ddq_rad_s2[j].abs() < 1e-2
+        }) && (self.finger_m - target).abs() < 1e-6
     }
 }

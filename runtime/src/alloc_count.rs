@@ -36,6 +36,8 @@ const FREE_FLAG: AtomicBool = AtomicBool::new(false);
 static POOL: Pool = Pool { blocks: [FREE_BLOCK; BLOCKS], used: [FREE_FLAG; BLOCKS], hint: AtomicUsize::new(0) };
 static SYSTEM_IN_TICK: AtomicU64 = AtomicU64::new(0);
 static POOL_IN_TICK: AtomicU64 = AtomicU64::new(0);
+/// Set by the first allocation through [`CountingAlloc`]: the counts above mean something.
+static ACTIVE: AtomicBool = AtomicBool::new(false);
 /// Debugging aid (R2G_ABORT_ON_TICK_ALLOC=1 in r2g-control): abort at the offending allocation
 /// so a debugger shows where it came from.
 pub static ABORT_ON_SYSTEM_ALLOC: AtomicBool = AtomicBool::new(false);
@@ -77,6 +79,9 @@ pub struct CountingAlloc;
 // release; everything else is forwarded to the system allocator unchanged.
 unsafe impl GlobalAlloc for CountingAlloc {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        if !ACTIVE.load(Ordering::Relaxed) {
+            ACTIVE.store(true, Ordering::Relaxed);
+        }
         if in_tick() {
             if layout.size() <= BLOCK_BYTES && layout.align() <= BLOCK_ALIGN {
                 if let Some(p) = POOL.take() {
@@ -142,6 +147,11 @@ impl Drop for TickScope {
     fn drop(&mut self) {
         IN_TICK.with(|t| t.set(false));
     }
+}
+
+/// Whether this process allocates through [`CountingAlloc`] (else the counts stay 0).
+pub fn counting_active() -> bool {
+    ACTIVE.load(Ordering::Relaxed)
 }
 
 /// Calls that reached the system allocator from inside a tick (must stay 0).

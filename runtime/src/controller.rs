@@ -42,6 +42,10 @@ pub struct Controller {
     finger_prev: f64,
     finger_still_ticks: u32,
     cmd_seq: u64,
+    /// Why the last request was refused, for counting (`None` after an accepted one).
+    pub last_rejection: Option<&'static str>,
+    /// Braking-policy ticks of trackers dropped at resets.
+    braking_before: u64,
 }
 
 /// A request the controller wants passed to the simulator.
@@ -68,6 +72,8 @@ impl Controller {
             finger_prev: 0.0,
             finger_still_ticks: 0,
             cmd_seq: 0,
+            last_rejection: None,
+            braking_before: 0,
         }
     }
 
@@ -90,11 +96,12 @@ impl Controller {
         if state.seq > 0 {
             self.ensure_tracker(state);
         }
-        let reject = |why: Rejection| {
-            (Some(Reply::formatted(req.id, req.client, Status::Rejected, format_args!("{why}"))), Forward::None)
-        };
-        if self.busy() {
-            return reject(Rejection::Busy);
+        self.last_rejection = None;
+        // A new chunk from the client whose chunk is running replaces it, blending from the
+        // current command; anything else waits for the running request to finish.
+        let preempts = req.kind == RequestKind::Chunk as u32 && self.active.is_some_and(|a| a.client == req.client);
+        if self.busy() && !preempts {
+            return self.reject(req, Rejection::Busy);
         }
         let Some(tracker) = self.tracker else {
             let r = Reply::new(
@@ -114,28 +121,39 @@ impl Controller {
             }
             k if k == RequestKind::Chunk as u32 => {
                 let Some(ct) = ControlType::from_u32(req.control_type) else {
-                    return reject(Rejection::UnknownControlType(req.control_type));
+                    return self.reject(req, Rejection::UnknownControlType(req.control_type));
                 };
                 if let Some(locked) = self.locked {
                     if locked != ct {
-                        return reject(Rejection::ControlTypeLocked { locked: locked.name(), requested: ct.name() });
+                        return self
+                            .reject(req, Rejection::ControlTypeLocked { locked: locked.name(), requested: ct.name() });
                     }
                 }
                 if ct == ControlType::EePose {
-                    return reject(Rejection::UnsupportedControlType("ee_pose"));
+                    return self.reject(req, Rejection::UnsupportedControlType("ee_pose"));
                 }
                 let len = (req.len as usize).min(req.actions.len() + 1);
                 if len > req.actions.len() {
-                    return reject(Rejection::TooLong { len: req.len as usize, max: req.actions.len() });
+                    return self.reject(req, Rejection::TooLong { len: req.len as usize, max: req.actions.len() });
                 }
                 match ChunkPlan::joint(&req.actions[..len], req.freq_hz, tracker.q_rad, &self.robot, &self.cfg) {
                     Ok(plan) => {
+                        let superseded = self.active.map(|old| {
+                            let mut r = Reply::formatted(
+                                old.id,
+                                old.client,
+                                Status::Failed,
+                                format_args!("superseded by request {} before it finished", req.id),
+                            );
+                            r.executed = self.reference.reached as u32;
+                            r
+                        });
                         self.plan = plan;
                         self.locked = Some(ct);
                         self.active = Some(Active { id: req.id, client: req.client, t_s: 0.0, phase: Phase::Moving });
-                        (None, Forward::None)
+                        (superseded, Forward::None)
                     }
-                    Err(why) => reject(why),
+                    Err(why) => self.reject(req, why),
                 }
             }
             other => {
@@ -150,6 +168,11 @@ impl Controller {
         }
     }
 
+    fn reject(&mut self, req: &Request, why: Rejection) -> (Option<Reply>, Forward) {
+        self.last_rejection = Some(why.kind());
+        (Some(Reply::formatted(req.id, req.client, Status::Rejected, format_args!("{why}"))), Forward::None)
+    }
+
     /// The simulator's reset id the runtime waits for, if a reset is in flight.
     pub fn pending_reset(&self) -> Option<u64> {
         self.pending_reset.map(|r| r.2)
@@ -162,6 +185,7 @@ impl Controller {
         if state.reset_id != sim_id {
             return None;
         }
+        self.braking_before += self.tracker.map_or(0, |t| t.braking_ticks);
         self.tracker = None;
         self.locked = None;
         self.pending_reset = None;
@@ -274,6 +298,11 @@ impl Controller {
             };
             self.tracker = Some(t);
         }
+    }
+
+    /// Ticks on which the limiter's braking policy overrode tracking, since start.
+    pub fn braking_ticks(&self) -> u64 {
+        self.braking_before + self.tracker.map_or(0, |t| t.braking_ticks)
     }
 
     /// The agent-facing state for the latest measurement.

@@ -29,6 +29,17 @@ pub fn gyms_dir() -> PathBuf {
     PathBuf::from("gyms")
 }
 
+/// The shipped robot descriptions (`R2G_ROBOTS`, else `robots/` beside the gyms folder).
+pub fn robots_dir() -> anyhow::Result<PathBuf> {
+    if let Ok(d) = std::env::var("R2G_ROBOTS") {
+        return Ok(PathBuf::from(d));
+    }
+    let gyms = gyms_dir();
+    let d = gyms.parent().unwrap_or(Path::new(".")).join("robots");
+    anyhow::ensure!(d.is_dir(), "no robots folder at {} (set R2G_ROBOTS)", d.display());
+    Ok(d)
+}
+
 /// Resolves a gym name, folder or scene file to a scene file.
 pub fn resolve_scene(gym: &str) -> anyhow::Result<PathBuf> {
     let p = PathBuf::from(gym);

@@ -1,0 +1,289 @@
+//! Benchmarks of the I/O-free control core, run through the runtime's own `Controller` (the
+//! code the 1 kHz tick calls): `r2g bench tick-compute` and `r2g bench limiter-fuzz`.
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use anyhow::Context;
+use controllers::monitor::Monitor;
+use controllers::{LimiterConfig, RobotModel, N};
+use ipc_schema::{ControlType, JointCommand, Request, RequestKind, SimState, MAX_CHUNK, WAYPOINT_LEN};
+use runtime::controller::{Controller, Forward};
+use runtime::stats::Histogram;
+use serde_json::json;
+
+const DT_S: f64 = 0.001;
+pub const HOME: [f64; N] = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785];
+
+/// The Panda of the shipped gyms.
+pub fn panda() -> anyhow::Result<RobotModel> {
+    let path = runtime::launch::robots_dir()?.join("panda/panda.urdf");
+    let xml = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    Ok(RobotModel::from_urdf_str(&xml, "hand_tcp", controllers::Profile::Panda)?)
+}
+
+/// splitmix64: reproducible inputs without a dependency.
+pub struct Rng(pub u64);
+impl Rng {
+    pub fn u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+    /// Uniform in [0, 1).
+    pub fn f(&mut self) -> f64 {
+        (self.u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+    pub fn below(&mut self, n: u64) -> u64 {
+        self.u64() % n.max(1)
+    }
+}
+
+fn empty_request(id: u64, client: u64) -> Box<Request> {
+    Box::new(Request {
+        id,
+        client,
+        kind: RequestKind::Chunk as u32,
+        control_type: ControlType::Joint as u32,
+        len: 0,
+        _pad: 0,
+        freq_hz: 0.0,
+        actions: [[0.0; WAYPOINT_LEN]; MAX_CHUNK],
+    })
+}
+
+/// A simulator that follows every command exactly: the state the controller sees next.
+fn follow(state: &mut SimState, cmd: &JointCommand) {
+    state.seq += 1;
+    state.command_seq = cmd.seq;
+    state.sim_time_s += DT_S;
+    state.q_rad = cmd.q_rad;
+    state.dq_rad_s = cmd.dq_rad_s;
+    state.finger_m = cmd.finger_m;
+}
+
+fn start_state(robot: &RobotModel) -> SimState {
+    SimState {
+        seq: 1,
+        q_rad: HOME,
+        finger_m: robot.finger_max_m,
+        finger_max_m: robot.finger_max_m,
+        ..SimState::default()
+    }
+}
+
+/// A configuration drawn uniformly inside the limits (less a small margin).
+fn random_q(rng: &mut Rng, robot: &RobotModel, margin: f64) -> [f64; N] {
+    std::array::from_fn(|j| {
+        let l = robot.joints[j];
+        l.q_min_rad + margin + rng.f() * (l.q_max_rad - l.q_min_rad - 2.0 * margin)
+    })
+}
+
+/// A valid joint chunk: `len` waypoints at `freq` Hz moving toward a random configuration.
+fn valid_chunk(rng: &mut Rng, robot: &RobotModel, from: [f64; N], req: &mut Request) {
+    let goal = random_q(rng, robot, 0.1);
+    let len = 1 + rng.below(20) as usize;
+    // Small steps so the chunk keeps pace with its rate, as a policy's chunks do.
+    let reach = 0.02 + 0.2 * rng.f();
+    for k in 0..len {
+        let s = reach * (k + 1) as f64 / len as f64;
+        for j in 0..N {
+            req.actions[k][j] = from[j] + s * (goal[j] - from[j]);
+        }
+        req.actions[k][N] = if rng.f() < 0.5 { -1.0 } else { 1.0 };
+    }
+    req.len = len as u32;
+    req.freq_hz = [0.0, 10.0, 20.0, 50.0][rng.below(4) as usize];
+}
+
+/// `r2g bench tick-compute`: time of one controller tick (interpolation, limiter, checks)
+/// while it follows a stream of valid chunks, beside FK + Jacobian alone as a yardstick.
+pub fn tick_compute(ticks: u64) -> anyhow::Result<serde_json::Value> {
+    let robot = panda()?;
+    let mut ctl = Controller::new(robot.clone(), LimiterConfig::default(), DT_S);
+    let mut state = start_state(&robot);
+    let mut rng = Rng(7);
+    let mut req = empty_request(0, 1);
+    let (mut hist, mut fk_hist) = (Histogram::new(), Histogram::new());
+    let mut allocs = 0u64;
+    let mut next_chunk = 0u64;
+    let mut id = 0;
+    for t in 0..ticks {
+        if t >= next_chunk {
+            id += 1;
+            req.id = id;
+            valid_chunk(&mut rng, &robot, state.q_rad, &mut req);
+            let _ = ctl.request(&req, &state);
+            next_chunk = t + 50;
+        }
+        let before = runtime::alloc_count::tick_allocations() + runtime::alloc_count::tick_pool_allocations();
+        let t0 = Instant::now();
+        let (cmd, _reply) = {
+            let _scope = runtime::alloc_count::TickScope::enter();
+            ctl.tick(&state)
+        };
+        hist.record(t0.elapsed().as_nanos() as u64);
+        allocs += runtime::alloc_count::tick_allocations() + runtime::alloc_count::tick_pool_allocations() - before;
+        follow(&mut state, &cmd);
+        let t1 = Instant::now();
+        let j = robot.kin.jacobian(&state.q_rad, robot.kin.tcp);
+        std::hint::black_box(j);
+        fk_hist.record(t1.elapsed().as_nanos() as u64);
+    }
+    let counted = runtime::alloc_count::counting_active();
+    let row = |name: &str, h: &Histogram| {
+        vec![
+            name.to_string(),
+            format!("{:.2}", h.quantile_us(0.5)),
+            format!("{:.2}", h.quantile_us(0.99)),
+            format!("{:.2}", h.quantile_us(0.999)),
+            format!("{:.2}", h.max_us()),
+        ]
+    };
+    crate::print_table(
+        &["stage", "median µs", "p99 µs", "p99.9 µs", "max µs"],
+        &[row("controller tick", &hist), row("FK + Jacobian only", &fk_hist)],
+    );
+    println!(
+        "allocations inside ticks: {allocs} over {ticks} ticks{}",
+        if counted { "" } else { " (counting allocator NOT installed: figure not measured)" }
+    );
+    let out = json!({
+        "ticks": ticks,
+        "median_us": hist.quantile_us(0.5),
+        "p99_us": hist.quantile_us(0.99),
+        "p999_us": hist.quantile_us(0.999),
+        "max_us": hist.max_us(),
+        "allocations_per_tick": if counted { json!(allocs as f64 / ticks as f64) } else { json!(null) },
+        "braking_ticks": ctl.braking_ticks(),
+        "baseline_fk_jacobian": { "median_us": fk_hist.quantile_us(0.5), "p99_us": fk_hist.quantile_us(0.99) },
+        "p99_ratio_to_fk_jacobian": hist.quantile_us(0.99) / fk_hist.quantile_us(0.99),
+    });
+    println!("{out}");
+    Ok(out)
+}
+
+/// One adversarial request: mostly hostile values, some valid chunks (so the arm moves and
+/// later chunks arrive mid-motion), now and then a reset.
+fn adversarial(rng: &mut Rng, robot: &RobotModel, q: [f64; N], req: &mut Request) {
+    req.kind = RequestKind::Chunk as u32;
+    req.control_type = ControlType::Joint as u32;
+    match rng.below(20) {
+        0 => req.kind = RequestKind::Reset as u32,
+        1 => req.kind = rng.u64() as u32,
+        2 => req.control_type = ControlType::EePose as u32,
+        3 => req.control_type = 2 + rng.below(1 << 20) as u32,
+        _ => {}
+    }
+    if rng.below(3) == 0 {
+        valid_chunk(rng, robot, q, req);
+        return;
+    }
+    req.len = match rng.below(6) {
+        0 => 0,
+        1 => rng.u64() as u32,
+        2 => MAX_CHUNK as u32 + rng.below(4) as u32,
+        _ => 1 + rng.below(MAX_CHUNK as u64) as u32,
+    };
+    req.freq_hz = match rng.below(8) {
+        0 => f64::NAN,
+        1 => -rng.f() * 1e3,
+        2 => 1e9,
+        3 => rng.f() * 1e-3,
+        4 => f64::INFINITY,
+        _ => [0.0, 1.0, 20.0, 100.0, 1000.0][rng.below(5) as usize],
+    };
+    let n = (req.len as usize).min(MAX_CHUNK);
+    for k in 0..n {
+        for i in 0..WAYPOINT_LEN {
+            let l = robot.joints[i.min(N - 1)];
+            req.actions[k][i] = match rng.below(12) {
+                0 => f64::NAN,
+                1 => f64::INFINITY,
+                2 => f64::NEG_INFINITY,
+                3 => (rng.f() - 0.5) * 1e12,
+                4 if i < N => l.q_max_rad - rng.f() * 0.02,
+                5 if i < N => l.q_min_rad + rng.f() * 0.02,
+                _ if i < N => l.q_min_rad + rng.f() * (l.q_max_rad - l.q_min_rad),
+                _ => (rng.f() - 0.5) * 2.2,
+            };
+        }
+    }
+}
+
+/// `r2g bench limiter-fuzz`: adversarial chunks through the controller, every command judged
+/// by an independent monitor.
+pub fn limiter_fuzz(chunks: u64, seed: u64) -> anyhow::Result<serde_json::Value> {
+    let robot = panda()?;
+    let cfg = LimiterConfig::default();
+    let mut ctl = Controller::new(robot.clone(), cfg, DT_S);
+    let mut state = start_state(&robot);
+    let mut monitor = Monitor::new(DT_S);
+    monitor.start_at(&state.q_rad, state.finger_m, &robot);
+    let mut rng = Rng(seed);
+    let mut req = empty_request(0, 1);
+    let mut reasons: BTreeMap<&'static str, u64> = BTreeMap::new();
+    let (mut accepted, mut superseded, mut resets) = (0u64, 0u64, 0u64);
+    let t0 = Instant::now();
+    for c in 0..chunks {
+        req.id = c + 1;
+        req.client = if rng.below(8) == 0 { 2 } else { 1 };
+        adversarial(&mut rng, &robot, state.q_rad, &mut req);
+        let (reply, fwd) = ctl.request(&req, &state);
+        match (ctl.last_rejection, reply) {
+            (Some(kind), _) => *reasons.entry(kind).or_default() += 1,
+            (None, Some(r)) if r.id != req.id => {
+                superseded += 1;
+                accepted += 1;
+            }
+            (None, Some(_)) => *reasons.entry("other").or_default() += 1,
+            (None, None) => accepted += 1,
+        }
+        if let Forward::Reset { sim_reset_id } = fwd {
+            // The simulator puts the arm back home; the command stream starts afresh.
+            resets += 1;
+            state.reset_id = sim_reset_id;
+            state.q_rad = HOME;
+            state.dq_rad_s = [0.0; N];
+            state.seq += 1;
+            monitor.start_at(&HOME, state.finger_m, &robot);
+        }
+        for _ in 0..rng.below(24) {
+            let (cmd, _) = ctl.tick(&state);
+            monitor.observe(&cmd.q_rad, cmd.finger_m, &robot, &cfg);
+            follow(&mut state, &cmd);
+        }
+    }
+    let secs = t0.elapsed().as_secs_f64();
+    let v = monitor.violations;
+    let mut rows: Vec<Vec<String>> = reasons.iter().map(|(k, n)| vec![k.to_string(), n.to_string()]).collect();
+    rows.push(vec!["(accepted)".into(), accepted.to_string()]);
+    crate::print_table(&["rejection reason", "chunks"], &rows);
+    println!(
+        "{chunks} chunks, {} commands in {secs:.1} s; violations: {} {}",
+        monitor.commands,
+        v.total(),
+        monitor.first.as_deref().unwrap_or("")
+    );
+    let out = json!({
+        "chunks": chunks,
+        "commands": monitor.commands,
+        "violations": v.total(),
+        "violations_by_kind": {
+            "not_finite": v.not_finite, "position": v.position, "velocity": v.velocity,
+            "acceleration": v.acceleration, "jerk": v.jerk, "tcp_speed": v.tcp_speed, "finger": v.finger,
+        },
+        "accepted": accepted,
+        "superseded": superseded,
+        "resets": resets,
+        "rejections": reasons,
+        "braking_ticks": ctl.braking_ticks(),
+        "seed": seed,
+        "seconds": secs,
+    });
+    println!("{out}");
+    Ok(out)
+}
