@@ -17,7 +17,7 @@ use std::fmt;
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use parry3d::math::{Pose, Rot3, Vector};
-use parry3d::query;
+use parry3d::query::{self, PointQuery};
 use parry3d::shape::{Cuboid, HalfSpace, Segment, Shape};
 
 use crate::kinematics::FrameId;
@@ -106,6 +106,35 @@ enum Placed {
 }
 
 const UNPLACED: Placed = Placed::Capsule(Segment { a: Vector::ZERO, b: Vector::ZERO }, 0.0);
+
+/// A sphere around a placed shape. The gap between two shapes is never smaller than the gap
+/// between their spheres, so a pair whose spheres are already too far apart to matter skips
+/// the exact query (the broad phase).
+#[derive(Debug, Clone, Copy)]
+struct Sphere {
+    centre: Vector,
+    radius: f32,
+}
+
+impl Sphere {
+    fn around(p: &Placed) -> Self {
+        match p {
+            Placed::Capsule(s, r) => Self { centre: (s.a + s.b) * 0.5, radius: (s.b - s.a).length() * 0.5 + r },
+            Placed::Cuboid(pose, c) => Self { centre: pose.translation, radius: c.half_extents.length() },
+        }
+    }
+
+    fn gap(&self, other: &Self) -> f32 {
+        (self.centre - other.centre).length() - self.radius - other.radius
+    }
+}
+
+/// Every shape of the robot placed at one configuration, and the TCP position.
+struct Posed {
+    shapes: [Placed; MAX_SHAPES],
+    spheres: [Sphere; MAX_SHAPES],
+    tcp: Vector3<f64>,
+}
 
 #[derive(Debug, Clone)]
 struct Body {
@@ -328,46 +357,60 @@ impl CollisionModel {
         self.elements.len()
     }
 
-    fn place(&self, q: &[f64; N]) -> Result<([Placed; MAX_SHAPES], Vector3<f64>), Violation<'static>> {
+    fn place(&self, q: &[f64; N]) -> Result<Posed, Violation<'static>> {
         if let Some(joint) = q.iter().position(|v| !v.is_finite()) {
             return Err(Violation::NotFinite { joint, value: q[joint] });
         }
         let joints = self.kin.joint_frames(q);
         let at = |moved_by: usize| if moved_by == 0 { Isometry3::identity() } else { joints[moved_by - 1] };
-        let mut placed = [UNPLACED; MAX_SHAPES];
-        for (p, e) in placed.iter_mut().zip(&self.elements) {
+        let mut shapes = [UNPLACED; MAX_SHAPES];
+        let mut spheres = [Sphere { centre: Vector::ZERO, radius: 0.0 }; MAX_SHAPES];
+        for ((p, sphere), e) in shapes.iter_mut().zip(spheres.iter_mut()).zip(&self.elements) {
             let t = at(e.moved_by);
             *p = match e.local {
                 Local::Capsule { a, b, radius } => Placed::Capsule(Segment::new(v32(&(t * a)), v32(&(t * b))), radius),
                 Local::Cuboid { pose, half } => Placed::Cuboid(pose32(&(t * pose)), half),
             };
+            *sphere = Sphere::around(p);
         }
         let tcp = self.kin.frames()[self.kin.tcp.0].moved_by;
         let tcp = (at(tcp) * self.kin.offset(self.kin.tcp)).translation.vector;
-        Ok((placed, tcp))
+        Ok(Posed { shapes, spheres, tcp })
     }
 
-    /// Smallest gap over the checked self-collision pairs: (element, element, gap).
-    fn nearest_self(&self, placed: &[Placed; MAX_SHAPES]) -> Option<(usize, usize, f32)> {
-        let mut best: Option<(usize, usize, f32)> = None;
+    /// The checked self-collision pair with the smallest gap, if that gap is below `below`:
+    /// (element, element, gap). Pairs whose bounding spheres are at least `below` (or the best
+    /// gap found so far) apart are skipped.
+    fn nearest_self(&self, posed: &Posed, below: f32) -> Option<(usize, usize, f32)> {
+        let mut best = None;
+        let mut cut = below;
         for &(i, k) in &self.pairs {
             let (i, k) = (i as usize, k as usize);
-            let d = gap(&placed[i], &placed[k]);
-            if best.is_none_or(|(_, _, b)| d < b) {
+            if posed.spheres[i].gap(&posed.spheres[k]) >= cut {
+                continue;
+            }
+            let d = gap(&posed.shapes[i], &posed.shapes[k]);
+            if d < cut {
+                cut = d;
                 best = Some((i, k, d));
             }
         }
         best
     }
 
-    /// Smallest gap between an exposed element and an obstacle: (element, obstacle, gap).
-    fn nearest_obstacle(&self, placed: &[Placed; MAX_SHAPES], scene: &StaticScene) -> Option<(usize, usize, f32)> {
-        let mut best: Option<(usize, usize, f32)> = None;
+    /// As [`Self::nearest_self`] for (exposed element, obstacle) pairs: (element, obstacle, gap).
+    fn nearest_obstacle(&self, posed: &Posed, scene: &StaticScene, below: f32) -> Option<(usize, usize, f32)> {
+        let mut best = None;
+        let mut cut = below;
         for &i in &self.exposed {
             let i = i as usize;
             for (o, obstacle) in scene.obstacles.iter().enumerate() {
-                let d = gap_to_obstacle(&placed[i], obstacle);
-                if best.is_none_or(|(_, _, b)| d < b) {
+                if obstacle.lower_bound(&posed.spheres[i]) >= cut {
+                    continue;
+                }
+                let d = gap_to_obstacle(&posed.shapes[i], obstacle);
+                if d < cut {
+                    cut = d;
                     best = Some((i, o, d));
                 }
             }
@@ -375,18 +418,14 @@ impl CollisionModel {
         best
     }
 
-    fn check_workspace<'a>(
-        &'a self,
-        placed: &[Placed; MAX_SHAPES],
-        tcp: &Vector3<f64>,
-        ws: &Workspace,
-    ) -> Result<(), Violation<'a>> {
+    fn check_workspace<'a>(&'a self, posed: &Posed, ws: &Workspace) -> Result<(), Violation<'a>> {
+        let tcp = posed.tcp;
         ws.contains(&self.tcp_name, [tcp.x, tcp.y, tcp.z])?;
         if ws.bodies {
             for &i in &self.exposed {
                 let name = self.bodies[self.elements[i as usize].body].name.as_str();
                 let mut result = Ok(());
-                for_each_reference_point(&placed[i as usize], |p| {
+                for_each_reference_point(&posed.shapes[i as usize], |p| {
                     if result.is_ok() {
                         result = ws.contains(name, [p.x as f64, p.y as f64, p.z as f64]);
                     }
@@ -411,27 +450,24 @@ impl CollisionModel {
         if !(margin_m.is_finite() && margin_m >= 0.0) {
             return Err(Violation::BadMargin { margin_m });
         }
-        let (placed, tcp) = self.place(q)?;
-        self.check_workspace(&placed, &tcp, workspace)?;
-        if let Some((i, k, d)) = self.nearest_self(&placed) {
-            if (d as f64) < margin_m {
-                return Err(Violation::SelfCollision {
-                    a: self.body_name(i),
-                    b: self.body_name(k),
-                    distance_m: d as f64,
-                    margin_m,
-                });
-            }
+        let posed = self.place(q)?;
+        self.check_workspace(&posed, workspace)?;
+        let below = margin_m as f32;
+        if let Some((i, k, d)) = self.nearest_self(&posed, below) {
+            return Err(Violation::SelfCollision {
+                a: self.body_name(i),
+                b: self.body_name(k),
+                distance_m: d as f64,
+                margin_m,
+            });
         }
-        if let Some((i, o, d)) = self.nearest_obstacle(&placed, scene) {
-            if (d as f64) < margin_m {
-                return Err(Violation::Obstacle {
-                    link: self.body_name(i),
-                    obstacle: &scene.obstacles[o].name,
-                    distance_m: d as f64,
-                    margin_m,
-                });
-            }
+        if let Some((i, o, d)) = self.nearest_obstacle(&posed, scene, below) {
+            return Err(Violation::Obstacle {
+                link: self.body_name(i),
+                obstacle: &scene.obstacles[o].name,
+                distance_m: d as f64,
+                margin_m,
+            });
         }
         Ok(())
     }
@@ -439,13 +475,13 @@ impl CollisionModel {
     /// The closest checked self-collision pair and the closest (body, obstacle) pair at `q`,
     /// for diagnostics. Fails only for a non-finite `q`. Does not allocate.
     pub fn clearance<'a>(&'a self, q: &[f64; N], scene: &'a StaticScene) -> Result<Clearance<'a>, Violation<'a>> {
-        let (placed, _) = self.place(q)?;
-        let near_self = self.nearest_self(&placed).map(|(i, k, d)| Proximity {
+        let posed = self.place(q)?;
+        let near_self = self.nearest_self(&posed, f32::INFINITY).map(|(i, k, d)| Proximity {
             a: self.body_name(i),
             b: self.body_name(k),
             distance_m: d as f64,
         });
-        let near_obstacle = self.nearest_obstacle(&placed, scene).map(|(i, o, d)| Proximity {
+        let near_obstacle = self.nearest_obstacle(&posed, scene, f32::INFINITY).map(|(i, o, d)| Proximity {
             a: self.body_name(i),
             b: &scene.obstacles[o].name,
             distance_m: d as f64,
@@ -456,11 +492,11 @@ impl CollisionModel {
     /// Gap between two bodies at `q` over all their shapes, whether or not the pair is checked
     /// (the pair filter is studied with this).
     pub fn body_distance(&self, q: &[f64; N], a: usize, b: usize) -> Result<f64, Violation<'static>> {
-        let (placed, _) = self.place(q)?;
+        let posed = self.place(q)?;
         let mut best = f32::INFINITY;
         for (i, _) in self.elements.iter().enumerate().filter(|(_, e)| e.body == a) {
             for (k, _) in self.elements.iter().enumerate().filter(|(_, e)| e.body == b) {
-                best = best.min(gap(&placed[i], &placed[k]));
+                best = best.min(gap(&posed.shapes[i], &posed.shapes[k]));
             }
         }
         Ok(best as f64)
@@ -532,6 +568,19 @@ enum ObstacleShape {
 struct Obstacle {
     name: String,
     shape: ObstacleShape,
+}
+
+impl Obstacle {
+    /// A value the gap between this obstacle and anything inside `s` cannot be below.
+    fn lower_bound(&self, s: &Sphere) -> f32 {
+        match &self.shape {
+            // Distance from the sphere's centre to the solid box: tight for flat boxes such as
+            // table tops, which a sphere around the box would bound badly.
+            ObstacleShape::Cuboid(pose, c) => c.distance_to_point(pose, s.centre, true) - s.radius,
+            // The half-space pose is a pure translation to a point on the plane.
+            ObstacleShape::HalfSpace(pose, h) => h.normal.dot(s.centre - pose.translation) - s.radius,
+        }
+    }
 }
 
 /// Known fixed obstacles in the robot base frame, each named. Build it once; checking against it

@@ -249,6 +249,34 @@ fn pair_filter_matches_sampled_contacts() {
     }
 }
 
+/// The bounding-sphere shortcut must not change answers: compare with every checked body pair
+/// measured in full.
+#[test]
+fn broad_phase_agrees_with_exhaustive_distances() {
+    let (robot, col) = setup();
+    let scene = StaticScene::new();
+    let ws = Workspace::unbounded();
+    let n = col.body_names().count();
+    let mut rng = Rng(4);
+    for _ in 0..2000 {
+        let q = rng.config(&robot);
+        let mut exhaustive = f64::INFINITY;
+        for a in 0..n {
+            for b in a + 1..n {
+                if col.is_checked(a, b) {
+                    exhaustive = exhaustive.min(col.body_distance(&q, a, b).expect("finite"));
+                }
+            }
+        }
+        let c = col.clearance(&q, &scene).expect("finite");
+        assert_eq!(c.self_pair.map(|p| p.distance_m), Some(exhaustive), "{q:?}");
+        for margin in [0.0, 0.02, 0.1] {
+            let refused = matches!(col.check(&q, &scene, &ws, margin), Err(Violation::SelfCollision { .. }));
+            assert_eq!(refused, exhaustive < margin as f32 as f64, "{q:?} margin {margin}");
+        }
+    }
+}
+
 #[test]
 fn random_configurations_mostly_free() {
     let (robot, col) = setup();
@@ -262,6 +290,7 @@ fn random_configurations_mostly_free() {
     assert!(share > 0.0 && share < 0.5, "{share}");
 }
 
+/// Prints how long one check takes; timing depends on the machine, so nothing is asserted.
 #[test]
 fn check_timing() {
     let (robot, col) = setup();
@@ -270,21 +299,25 @@ fn check_timing() {
     scene.add_half_space("wall", [-0.4, 0.0, 0.0], [1.0, 0.0, 0.0]).expect("wall");
     let ws = Workspace::new([-1.0; 3], [1.0, 1.0, 1.5]).expect("box").with_bodies();
     let mut rng = Rng(3);
-    let qs: Vec<[f64; N]> = (0..1000).map(|_| rng.config(&robot)).collect();
-    let rounds = 100;
-    let mut failed = 0usize;
-    let t = std::time::Instant::now();
-    for _ in 0..rounds {
-        for q in &qs {
-            failed += usize::from(col.check(std::hint::black_box(q), &scene, &ws, 0.01).is_err());
+    let random: Vec<[f64; N]> = (0..1000).map(|_| rng.config(&robot)).collect();
+    let home = vec![HOME; 1000];
+    for (what, qs) in [("HOME", &home), ("random configurations", &random)] {
+        let rounds = 200;
+        let mut refused = 0usize;
+        let t = std::time::Instant::now();
+        for _ in 0..rounds {
+            for q in qs {
+                refused += usize::from(col.check(std::hint::black_box(q), &scene, &ws, 0.01).is_err());
+            }
         }
+        let per = t.elapsed().as_secs_f64() / (rounds * qs.len()) as f64;
+        println!(
+            "check, {what}: {:.2} us per call ({} shapes, {} body pairs, 2 obstacles, {} of {} refused)",
+            per * 1e6,
+            col.shape_count(),
+            col.checked_body_pairs().len(),
+            refused / rounds,
+            qs.len()
+        );
     }
-    let per = t.elapsed().as_secs_f64() / (rounds * qs.len()) as f64;
-    println!(
-        "check: {:.2} us per call ({} shapes, {} pairs of bodies, 2 obstacles; {} refused)",
-        per * 1e6,
-        col.shape_count(),
-        col.checked_body_pairs().len(),
-        failed / rounds
-    );
 }
