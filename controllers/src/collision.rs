@@ -241,9 +241,9 @@ impl CollisionModel {
         let mut bodies = Vec::new();
         let mut elements = Vec::new();
         let links: HashMap<&str, &urdf_rs::Link> = robot.links.iter().map(|l| (l.name.as_str(), l)).collect();
-        for frame in kin.frames() {
+        for (id, frame) in kin.frames().iter().enumerate() {
+            let id = FrameId(id);
             let Some(link) = links.get(frame.name.as_str()) else { continue };
-            let id = kin.frame(&frame.name).unwrap_or(FrameId(0));
             if link.collision.is_empty() {
                 continue;
             }
