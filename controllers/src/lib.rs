@@ -1,6 +1,7 @@
 #![doc = include_str!("../README.md")]
 
 pub mod chunk;
+pub mod collision;
 pub mod error;
 pub mod kinematics;
 pub mod limiter;
@@ -9,6 +10,7 @@ pub mod monitor;
 pub mod robot;
 
 pub use chunk::{ChunkPlan, Waypoint};
+pub use collision::{CollisionModel, StaticScene, Violation, Workspace};
 pub use error::{Error, Rejection};
 pub use kinematics::{FrameId, Jacobian, Kinematics};
 pub use limiter::{JointTracker, LimiterConfig};
