@@ -2,6 +2,7 @@
 
 pub mod chunk;
 pub mod collision;
+pub mod diffik;
 pub mod error;
 pub mod kinematics;
 pub mod limiter;
