@@ -2,6 +2,7 @@
 
 pub mod chunk;
 pub mod error;
+pub mod ik;
 pub mod kinematics;
 pub mod limiter;
 pub mod math;
@@ -9,6 +10,7 @@ pub mod robot;
 
 pub use chunk::{ChunkPlan, Waypoint};
 pub use error::{Error, Rejection};
+pub use ik::{IkConfig, IkError, IkSolution, IkSolver};
 pub use kinematics::{FrameId, Jacobian, Kinematics};
 pub use limiter::{JointTracker, LimiterConfig};
 pub use robot::{CartesianLimits, JointLimits, Profile, RobotModel};
