@@ -142,8 +142,8 @@ impl Kinematics {
     pub fn fk(&self, q: &[f64; N], frame: FrameId) -> Isometry3<f64> {
         let f = &self.frames[frame.0];
         let mut t = Isometry3::identity();
-        for i in 0..f.moved_by {
-            t = t * self.origins[i] * UnitQuaternion::from_axis_angle(&self.axes[i], q[i]);
+        for ((origin, axis), qi) in self.origins.iter().zip(&self.axes).zip(q).take(f.moved_by) {
+            t = t * origin * UnitQuaternion::from_axis_angle(axis, *qi);
         }
         t * f.offset
     }
@@ -162,9 +162,9 @@ impl Kinematics {
         let pose = if f.moved_by == 0 { f.offset } else { joints[f.moved_by - 1] * f.offset };
         let p = pose.translation.vector;
         let mut jac = Jacobian::zeros();
-        for i in 0..f.moved_by {
-            let z = joints[i].rotation * self.axes[i].into_inner();
-            let lin = z.cross(&(p - joints[i].translation.vector));
+        for (i, (joint, axis)) in joints.iter().zip(&self.axes).enumerate().take(f.moved_by) {
+            let z = joint.rotation * axis.into_inner();
+            let lin = z.cross(&(p - joint.translation.vector));
             jac.fixed_view_mut::<3, 1>(0, i).copy_from(&lin);
             jac.fixed_view_mut::<3, 1>(3, i).copy_from(&z);
         }
