@@ -10,6 +10,7 @@ pub mod limiter;
 pub mod math;
 pub mod monitor;
 pub mod robot;
+pub mod safety;
 
 pub use chunk::{ChunkPlan, Waypoint};
 pub use collision::{CollisionModel, StaticScene, Violation, Workspace};
