@@ -1,5 +1,6 @@
 #![doc = include_str!("../README.md")]
 
+pub mod ik;
 pub mod ipc;
 pub mod tick;
 
