@@ -9,6 +9,8 @@ use ipc_schema::process;
 use ipc_schema::Mode;
 use runtime::launch::{self, Instance, UpOptions};
 
+mod kin;
+
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum ModeArg {
     /// Real time: the runtime ticks at 1 kHz on the wall clock.
@@ -44,10 +46,46 @@ enum Cmd {
     },
     /// List the gyms of the pack, one name per line.
     Gyms,
+    /// Kinematics over JSON lines: reads one request per stdin line, answers one line each.
+    Kin {
+        #[command(subcommand)]
+        which: KinCmd,
+    },
     /// Run a benchmark; prints a table and, as the last line, one JSON object.
     Bench {
         #[command(subcommand)]
         which: BenchCmd,
+    },
+}
+
+/// Options shared by `r2g kin fk` and `r2g kin ik`.
+#[derive(clap::Args, Debug)]
+struct KinArgs {
+    /// `panda`, `fr3` (the shipped description with that robot's limits) or a URDF file
+    /// (read with the Panda acceleration and jerk limits).
+    #[arg(long, default_value = "panda")]
+    robot: String,
+    /// Frame to compute or place (a link name, `tcp` or `flange`); default: the TCP.
+    #[arg(long)]
+    frame: Option<String>,
+    /// The URDF link that is the TCP.
+    #[arg(long, default_value = "hand_tcp")]
+    tcp: String,
+}
+
+#[derive(Subcommand, Debug)]
+enum KinCmd {
+    /// `{"q":[7 numbers]}` → `{"position":[x,y,z],"quaternion":[x,y,z,w]}` (base frame).
+    Fk {
+        #[command(flatten)]
+        args: KinArgs,
+    },
+    /// `{"position":[3],"quaternion":[x,y,z,w],"seed":[7]}` →
+    /// `{"ok":bool,"q":[7],"position_error":m,"rotation_error":rad,...}`; tolerances 1e-5 m and
+    /// 1e-5 rad, joint limits kept. Without "seed" the middle of the joint ranges is the seed.
+    Ik {
+        #[command(flatten)]
+        args: KinArgs,
     },
 }
 
@@ -69,6 +107,16 @@ enum BenchCmd {
         #[arg(long)]
         only: Option<String>,
     },
+    /// Full-pose IK on random reachable Panda TCP poses: success rate and solve times, beside
+    /// plain FK, a naive undamped pseudo-inverse solver and (when importable) Pinocchio.
+    Ik {
+        /// Targets as `r2g kin ik` input lines instead of random ones.
+        #[arg(long)]
+        targets: Option<std::path::PathBuf>,
+        /// Number of random targets (ignored with --targets).
+        #[arg(long, default_value_t = 10_000)]
+        count: usize,
+    },
     /// The receiving process of `r2g bench ipc` (started by it).
     #[command(hide = true)]
     IpcPeer {
@@ -89,6 +137,9 @@ fn main() {
     let r = match cli.command {
         Cmd::Up { gym, mode, instance, render_hz } => up(&gym, mode, &instance, render_hz),
         Cmd::Gyms => gyms(),
+        Cmd::Kin { which: KinCmd::Fk { args } } => kin::run(false, &args.robot, &args.tcp, args.frame.as_deref()),
+        Cmd::Kin { which: KinCmd::Ik { args } } => kin::run(true, &args.robot, &args.tcp, args.frame.as_deref()),
+        Cmd::Bench { which: BenchCmd::Ik { targets, count } } => bench::ik::run(targets.as_deref(), count).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Tick { seconds, gym } } => bench::tick::run(&gym, seconds).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Ipc { only } } => bench::ipc::run(only.as_deref()).map(|_| 0),
         Cmd::Bench { which: BenchCmd::IpcPeer { transport, payload, addr, cpu } } => (|| {
