@@ -17,7 +17,7 @@ pub const HOME: [f64; N] = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785];
 
 /// The Panda of the shipped gyms.
 pub fn panda() -> anyhow::Result<RobotModel> {
-    let path = runtime::launch::robots_dir()?.join("panda/panda.urdf");
+    let path = runtime::launch::robots_dir().join("panda/panda.urdf");
     let xml = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     Ok(RobotModel::from_urdf_str(&xml, "hand_tcp", controllers::Profile::Panda)?)
 }

@@ -1,6 +1,7 @@
 #![doc = include_str!("../README.md")]
 
 pub mod control;
+pub mod ik;
 pub mod ipc;
 pub mod tick;
 

@@ -9,6 +9,8 @@ use ipc_schema::process;
 use ipc_schema::Mode;
 use runtime::launch::{self, Instance, UpOptions};
 
+mod kin;
+
 /// Counts allocations inside ticks, so `bench tick-compute` can report them.
 #[global_allocator]
 static ALLOC: runtime::alloc_count::CountingAlloc = runtime::alloc_count::CountingAlloc;
@@ -48,10 +50,46 @@ enum Cmd {
     },
     /// List the gyms of the pack, one name per line.
     Gyms,
+    /// Kinematics over JSON lines: reads one request per stdin line, answers one line each.
+    Kin {
+        #[command(subcommand)]
+        which: KinCmd,
+    },
     /// Run a benchmark; prints a table and, as the last line, one JSON object.
     Bench {
         #[command(subcommand)]
         which: BenchCmd,
+    },
+}
+
+/// Options shared by `r2g kin fk` and `r2g kin ik`.
+#[derive(clap::Args, Debug)]
+struct KinArgs {
+    /// `panda`, `fr3` (the shipped description with that robot's limits) or a URDF file
+    /// (read with the Panda acceleration and jerk limits).
+    #[arg(long, default_value = "panda")]
+    robot: String,
+    /// Frame to compute or place (a link name, `tcp` or `flange`); default: the TCP.
+    #[arg(long)]
+    frame: Option<String>,
+    /// The URDF link that is the TCP.
+    #[arg(long, default_value = "hand_tcp")]
+    tcp: String,
+}
+
+#[derive(Subcommand, Debug)]
+enum KinCmd {
+    /// `{"q":[7 numbers]}` → `{"position":[x,y,z],"quaternion":[x,y,z,w]}` (base frame).
+    Fk {
+        #[command(flatten)]
+        args: KinArgs,
+    },
+    /// `{"position":[3],"quaternion":[x,y,z,w],"seed":[7]}` →
+    /// `{"ok":bool,"q":[7],"position_error":m,"rotation_error":rad,...}`; tolerances 1e-5 m and
+    /// 1e-5 rad, joint limits kept. Without "seed" the middle of the joint ranges is the seed.
+    Ik {
+        #[command(flatten)]
+        args: KinArgs,
     },
 }
 
@@ -87,6 +125,16 @@ enum BenchCmd {
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
+    /// Full-pose IK on random reachable Panda TCP poses: success rate and solve times, beside
+    /// plain FK, a naive undamped pseudo-inverse solver and (when importable) Pinocchio.
+    Ik {
+        /// Targets as `r2g kin ik` input lines instead of random ones.
+        #[arg(long)]
+        targets: Option<std::path::PathBuf>,
+        /// Number of random targets (ignored with --targets).
+        #[arg(long, default_value_t = 10_000)]
+        count: usize,
+    },
     /// The receiving process of `r2g bench ipc` (started by it).
     #[command(hide = true)]
     IpcPeer {
@@ -107,6 +155,9 @@ fn main() {
     let r = match cli.command {
         Cmd::Up { gym, mode, instance, render_hz } => up(&gym, mode, &instance, render_hz),
         Cmd::Gyms => gyms(),
+        Cmd::Kin { which: KinCmd::Fk { args } } => kin::run(false, &args.robot, &args.tcp, args.frame.as_deref()),
+        Cmd::Kin { which: KinCmd::Ik { args } } => kin::run(true, &args.robot, &args.tcp, args.frame.as_deref()),
+        Cmd::Bench { which: BenchCmd::Ik { targets, count } } => bench::ik::run(targets.as_deref(), count).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Tick { seconds, gym } } => bench::tick::run(&gym, seconds).map(|_| 0),
         Cmd::Bench { which: BenchCmd::TickCompute { ticks } } => bench::control::tick_compute(ticks).map(|_| 0),
         Cmd::Bench { which: BenchCmd::LimiterFuzz { chunks, seed } } => {

@@ -14,30 +14,35 @@ use ipc_schema::{CameraFrame, Mode, Qos, RobotState, Services, SimInfo};
 /// Where the gym pack lives: `$R2G_GYMS`, else `gyms/` of the checkout holding this binary,
 /// else `./gyms`.
 pub fn gyms_dir() -> PathBuf {
-    if let Ok(d) = std::env::var("R2G_GYMS") {
+    checkout_dir("R2G_GYMS", "gyms")
+}
+
+/// Where the robot descriptions live: `$R2G_ROBOTS`, else `robots/` of the checkout holding
+/// this binary, else `./robots`.
+pub fn robots_dir() -> PathBuf {
+    checkout_dir("R2G_ROBOTS", "robots")
+}
+
+/// `$var` if set, else folder `name` of the checkout holding this binary, else of the checkout
+/// it was built from (a `CARGO_TARGET_DIR` outside the checkout), else `./name`.
+fn checkout_dir(var: &str, name: &str) -> PathBuf {
+    if let Ok(d) = std::env::var(var) {
         return PathBuf::from(d);
     }
     if let Ok(exe) = std::env::current_exe() {
-        // target/<profile>/r2g → the checkout root.
-        if let Some(root) = exe.parent().and_then(Path::parent).and_then(Path::parent) {
-            let g = root.join("gyms");
+        // target/<profile>/r2g → the checkout root (a test binary in deps/ is one level deeper).
+        for root in exe.ancestors().skip(3).take(2) {
+            let g = root.join(name);
             if g.is_dir() {
                 return g;
             }
         }
     }
-    PathBuf::from("gyms")
-}
-
-/// The shipped robot descriptions (`R2G_ROBOTS`, else `robots/` beside the gyms folder).
-pub fn robots_dir() -> anyhow::Result<PathBuf> {
-    if let Ok(d) = std::env::var("R2G_ROBOTS") {
-        return Ok(PathBuf::from(d));
+    let built_from = Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(name);
+    if built_from.is_dir() {
+        return built_from;
     }
-    let gyms = gyms_dir();
-    let d = gyms.parent().unwrap_or(Path::new(".")).join("robots");
-    anyhow::ensure!(d.is_dir(), "no robots folder at {} (set R2G_ROBOTS)", d.display());
-    Ok(d)
+    PathBuf::from(name)
 }
 
 /// Resolves a gym name, folder or scene file to a scene file.

@@ -42,3 +42,21 @@ fn bench_tick_reports_both_loops() {
     assert_eq!(v["runtime"]["tick_allocations"], 0, "{v}");
     assert!(v["runtime"]["ticks"].as_u64().is_some_and(|t| t > 500), "{v}");
 }
+
+#[test]
+fn bench_ik_reports_solver_and_baselines() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let out = Command::new(integration_tests::r2g()).args(["bench", "ik", "--count", "300"]).output().expect("run");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v = last_json_line(&out.stdout);
+    assert_eq!(v["bench"], "ik");
+    assert_eq!(v["targets"], 300, "{v}");
+    assert!(v["success_rate"].as_f64().is_some_and(|r| r >= 0.99), "{v}");
+    for k in ["median_us", "p99_us", "max_us", "fk_us"] {
+        assert!(v[k].as_f64().is_some_and(|x| x > 0.0), "{k} missing: {v}");
+    }
+    assert!(v["naive_pinv"]["success_rate"].as_f64().is_some(), "{v}");
+    assert!(v["home_seed"]["success_rate"].as_f64().is_some(), "{v}");
+    // Either measured or explicitly absent with the reason.
+    assert!(v["pinocchio"]["median_us"].as_f64().is_some() || v["pinocchio_note"].is_string(), "{v}");
+}
