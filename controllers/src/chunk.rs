@@ -4,9 +4,13 @@
 //! needs more than `speed_scale` of its velocity limit: a faster `freq` never buys speed past
 //! the limits. Storage is fixed-size so that sampling in the tick allocates nothing.
 
-use crate::error::Rejection;
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3, Vector6};
+
+use crate::error::{Rejection, Text};
+use crate::ik::IkSolver;
 use crate::limiter::LimiterConfig;
 use crate::robot::RobotModel;
+use crate::safety::SafetyChecks;
 use crate::N;
 
 /// Largest chunk the plan holds.
@@ -30,6 +34,59 @@ pub struct ChunkPlan {
     /// there, or the chunk ends). The limiter never carries a joint past it.
     turns: [[f64; N]; MAX_WAYPOINTS],
     len: usize,
+    /// ee_pose chunks: the TCP poses (base frame) the straight segments join, start first.
+    /// Inline rather than boxed: accepting a chunk in the tick must not allocate.
+    poses: [Isometry3<f64>; MAX_WAYPOINTS + 1],
+    cartesian: bool,
+}
+
+/// A Cartesian reference sample: where the TCP should be and its twist (linear, angular).
+#[derive(Debug, Clone, Copy)]
+pub struct PoseReference {
+    pub pose: Isometry3<f64>,
+    pub twist: Vector6<f64>,
+    pub gripper: f64,
+    pub reached: usize,
+    pub finished: bool,
+}
+
+/// Time for a rest-to-rest move over `d` at speed `v` and acceleration `a` (trapezoid).
+fn trapezoid_s(d: f64, v: f64, a: f64) -> f64 {
+    if d * a > v * v {
+        d / v + v / a
+    } else {
+        2.0 * (d / a).sqrt()
+    }
+}
+
+/// Checks what every chunk shares: length and rate. Returns the rate to use.
+fn check_shape(n: usize, freq_hz: f64, cfg: &LimiterConfig) -> Result<f64, Rejection> {
+    if n == 0 {
+        return Err(Rejection::Empty);
+    }
+    let max = MAX_WAYPOINTS.min(cfg.max_chunk);
+    if n > max {
+        return Err(Rejection::TooLong { len: n, max });
+    }
+    let freq = if freq_hz == 0.0 { cfg.default_freq_hz } else { freq_hz };
+    if !(freq.is_finite() && freq >= cfg.min_freq_hz && freq <= cfg.max_freq_hz) {
+        return Err(Rejection::BadFrequency { freq_hz, min_hz: cfg.min_freq_hz, max_hz: cfg.max_freq_hz });
+    }
+    Ok(freq)
+}
+
+fn check_values(w: usize, a: &[f64; 8]) -> Result<(), Rejection> {
+    if let Some(i) = a.iter().position(|v| !v.is_finite()) {
+        return Err(Rejection::NotFinite { waypoint: w, index: i });
+    }
+    if !(-1.0..=1.0).contains(&a[N]) {
+        return Err(Rejection::GripperOutOfRange { waypoint: w, value: a[N] });
+    }
+    Ok(())
+}
+
+fn unsafe_at(w: usize, v: crate::collision::Violation<'_>) -> Rejection {
+    Rejection::Unsafe { waypoint: w, detail: Text::of(format_args!("{v}")) }
 }
 
 /// A reference sample: where the arm should be, how fast it should move, and the gripper.
@@ -48,40 +105,24 @@ pub struct Reference {
 
 impl ChunkPlan {
     /// Checks every value of a joint chunk and times it from `start_q`. Rejects, never clips.
+    /// With `safety`, each waypoint and the straight joint path to it must also be free of
+    /// collisions and inside the workspace.
     pub fn joint(
         actions: &[[f64; 8]],
         freq_hz: f64,
         start_q: [f64; N],
         robot: &RobotModel,
         cfg: &LimiterConfig,
+        safety: Option<&SafetyChecks>,
     ) -> Result<Self, Rejection> {
-        if actions.is_empty() {
-            return Err(Rejection::Empty);
-        }
-        if actions.len() > MAX_WAYPOINTS.min(cfg.max_chunk) {
-            return Err(Rejection::TooLong { len: actions.len(), max: MAX_WAYPOINTS.min(cfg.max_chunk) });
-        }
-        let freq = if freq_hz == 0.0 { cfg.default_freq_hz } else { freq_hz };
-        if !(freq.is_finite() && freq >= cfg.min_freq_hz && freq <= cfg.max_freq_hz) {
-            return Err(Rejection::BadFrequency { freq_hz, min_hz: cfg.min_freq_hz, max_hz: cfg.max_freq_hz });
-        }
-        let mut plan = Self {
-            start_q,
-            waypoints: [Waypoint { q_rad: [0.0; N], gripper: 0.0 }; MAX_WAYPOINTS],
-            ends_s: [0.0; MAX_WAYPOINTS],
-            turns: [[0.0; N]; MAX_WAYPOINTS],
-            len: actions.len(),
-        };
+        let freq = check_shape(actions.len(), freq_hz, cfg)?;
+        let mut plan = Self::hold(start_q, 0.0);
+        plan.len = actions.len();
         let mut prev = start_q;
         let mut t = 0.0;
         for (w, a) in actions.iter().enumerate() {
-            for (i, v) in a.iter().enumerate() {
-                if !v.is_finite() {
-                    return Err(Rejection::NotFinite { waypoint: w, index: i });
-                }
-            }
+            check_values(w, a)?;
             let mut q = [0.0; N];
-            let mut seg_s = 1.0 / freq;
             for j in 0..N {
                 let lim = robot.joints[j];
                 let (lo, hi) = (lim.q_min_rad + cfg.q_margin_rad, lim.q_max_rad - cfg.q_margin_rad);
@@ -89,27 +130,143 @@ impl ChunkPlan {
                     return Err(Rejection::JointOutOfRange { waypoint: w, joint: j, value: a[j], min: lo, max: hi });
                 }
                 q[j] = a[j];
-                let v = cfg.speed_scale * lim.dq_max_rad_s;
-                // Trapezoid with the limiter's acceleration: the time it needs to cover the step.
-                let acc = cfg.accel_scale * lim.ddq_max_rad_s2;
-                let d = (q[j] - prev[j]).abs();
-                let need = if d * acc > v * v { d / v + v / acc } else { 2.0 * (d / acc).sqrt() };
-                seg_s = seg_s.max(need.max(d / v));
             }
-            let g = a[N];
-            if !(-1.0..=1.0).contains(&g) {
-                return Err(Rejection::GripperOutOfRange { waypoint: w, value: g });
+            if let Some(s) = safety {
+                s.check_path(&prev, &q).map_err(|v| unsafe_at(w, v))?;
             }
-            t += seg_s;
-            if t > cfg.max_chunk_duration_s {
-                return Err(Rejection::TooSlow { waypoint: w, duration_s: t, max_s: cfg.max_chunk_duration_s });
-            }
-            plan.waypoints[w] = Waypoint { q_rad: q, gripper: g };
+            t += plan.segment_s(w, &prev, &q, freq, robot, cfg)?;
+            plan.waypoints[w] = Waypoint { q_rad: q, gripper: a[N] };
             plan.ends_s[w] = t;
             prev = q;
         }
         plan.find_turns();
         Ok(plan)
+    }
+
+    /// Checks an ee_pose chunk: `[x, y, z, ax, ay, az, _, g]` TCP targets in the base frame
+    /// (axis-angle rotation). Every waypoint must have an IK solution within the joint limits
+    /// (each seeded with the previous one), and with `safety` that solution and the path to it
+    /// must be collision-free. Segments are timed for the TCP's speed limits and the joints'.
+    pub fn ee_pose(
+        actions: &[[f64; 8]],
+        freq_hz: f64,
+        start_q: [f64; N],
+        robot: &RobotModel,
+        cfg: &LimiterConfig,
+        ik: &IkSolver,
+        safety: Option<&SafetyChecks>,
+    ) -> Result<Self, Rejection> {
+        let freq = check_shape(actions.len(), freq_hz, cfg)?;
+        let mut plan = Self::hold(start_q, 0.0);
+        plan.len = actions.len();
+        plan.poses[0] = robot.kin.fk(&start_q, robot.kin.tcp);
+        let mut prev = start_q;
+        let mut t = 0.0;
+        let cart = robot.cartesian;
+        for (w, a) in actions.iter().enumerate() {
+            check_values(w, a)?;
+            let pose = Isometry3::from_parts(
+                Translation3::new(a[0], a[1], a[2]),
+                UnitQuaternion::from_scaled_axis(Vector3::new(a[3], a[4], a[5])),
+            );
+            let sol = match ik.solve(&pose, &prev) {
+                Ok(s) if s.ok => s,
+                Ok(s) => {
+                    return Err(Rejection::Unreachable {
+                        waypoint: w,
+                        position_error_m: s.position_error_m,
+                        rotation_error_rad: s.rotation_error_rad,
+                    })
+                }
+                Err(_) => return Err(Rejection::NotFinite { waypoint: w, index: 0 }),
+            };
+            if let Some(s) = safety {
+                s.check_path(&prev, &sol.q).map_err(|v| unsafe_at(w, v))?;
+            }
+            let from = plan.poses[w];
+            let d = (pose.translation.vector - from.translation.vector).norm();
+            let ang = pose.rotation.angle_to(&from.rotation);
+            let tcp_s = trapezoid_s(d, cfg.tcp_speed_scale * cart.v_m_s, cfg.accel_scale * cart.a_m_s2)
+                .max(trapezoid_s(ang, cfg.tcp_speed_scale * cart.w_rad_s, cfg.accel_scale * cart.dw_rad_s2));
+            t += plan.segment_s(w, &prev, &sol.q, freq, robot, cfg)?.max(tcp_s);
+            if t > cfg.max_chunk_duration_s {
+                return Err(Rejection::TooSlow { waypoint: w, duration_s: t, max_s: cfg.max_chunk_duration_s });
+            }
+            plan.waypoints[w] = Waypoint { q_rad: sol.q, gripper: a[N] };
+            plan.ends_s[w] = t;
+            plan.poses[w + 1] = pose;
+            prev = sol.q;
+        }
+        plan.find_turns();
+        plan.cartesian = true;
+        Ok(plan)
+    }
+
+    /// Duration of segment `w` from `from` to `to`: one period of the rate at least, and long
+    /// enough that no joint needs more than `speed_scale` of its velocity limit.
+    fn segment_s(
+        &self,
+        w: usize,
+        from: &[f64; N],
+        to: &[f64; N],
+        freq: f64,
+        robot: &RobotModel,
+        cfg: &LimiterConfig,
+    ) -> Result<f64, Rejection> {
+        let mut seg_s = 1.0 / freq;
+        for j in 0..N {
+            let lim = robot.joints[j];
+            let v = cfg.speed_scale * lim.dq_max_rad_s;
+            let d = (to[j] - from[j]).abs();
+            seg_s = seg_s.max(trapezoid_s(d, v, cfg.accel_scale * lim.ddq_max_rad_s2));
+        }
+        let t = if w == 0 { 0.0 } else { self.ends_s[w - 1] } + seg_s;
+        if t > cfg.max_chunk_duration_s {
+            return Err(Rejection::TooSlow { waypoint: w, duration_s: t, max_s: cfg.max_chunk_duration_s });
+        }
+        Ok(seg_s)
+    }
+
+    /// Whether this is an ee_pose chunk (sample it with [`Self::sample_pose`]).
+    pub fn is_cartesian(&self) -> bool {
+        self.cartesian
+    }
+
+    /// The TCP reference of an ee_pose chunk at `t_s`: straight segments between the poses,
+    /// translation interpolated linearly and rotation along the shortest arc.
+    pub fn sample_pose(&self, t_s: f64) -> Option<PoseReference> {
+        if !self.cartesian {
+            return None;
+        }
+        let poses = &self.poses;
+        let mut seg = 0;
+        while seg < self.len && self.ends_s[seg] <= t_s {
+            seg += 1;
+        }
+        if seg >= self.len {
+            return Some(PoseReference {
+                pose: poses[self.len],
+                twist: Vector6::zeros(),
+                gripper: self.last().gripper,
+                reached: self.len,
+                finished: true,
+            });
+        }
+        let t0 = if seg == 0 { 0.0 } else { self.ends_s[seg - 1] };
+        let dur = self.ends_s[seg] - t0;
+        let s = ((t_s - t0) / dur).clamp(0.0, 1.0);
+        let (a, b) = (poses[seg], poses[seg + 1]);
+        let rot = a.rotation.slerp(&b.rotation, s);
+        let pos = a.translation.vector.lerp(&b.translation.vector, s);
+        let v = (b.translation.vector - a.translation.vector) / dur;
+        let w = (b.rotation * a.rotation.inverse()).scaled_axis() / dur;
+        Some(PoseReference {
+            pose: Isometry3::from_parts(Translation3::from(pos), rot),
+            twist: Vector6::new(v.x, v.y, v.z, w.x, w.y, w.z),
+            gripper: self.waypoints[seg].gripper,
+            reached: seg,
+            finished: false,
+        })
     }
 
     /// Fills `turns` backwards: a segment inherits the next one's turn point while the joint
@@ -131,7 +288,20 @@ impl ChunkPlan {
     /// A plan that holds one configuration; used as the idle placeholder.
     pub fn hold(q_rad: [f64; N], gripper: f64) -> Self {
         let waypoints = [Waypoint { q_rad, gripper }; MAX_WAYPOINTS];
-        Self { start_q: q_rad, waypoints, ends_s: [0.0; MAX_WAYPOINTS], turns: [q_rad; MAX_WAYPOINTS], len: 1 }
+        Self {
+            start_q: q_rad,
+            waypoints,
+            ends_s: [0.0; MAX_WAYPOINTS],
+            turns: [q_rad; MAX_WAYPOINTS],
+            len: 1,
+            poses: [Isometry3::identity(); MAX_WAYPOINTS + 1],
+            cartesian: false,
+        }
+    }
+
+    /// The configuration the chunk started from.
+    pub fn start_q(&self) -> [f64; N] {
+        self.start_q
     }
 
     pub fn len(&self) -> usize {

@@ -16,21 +16,107 @@ pub enum Error {
     NoFinger { link: String },
 }
 
+/// A short message kept inline, so that building a rejection in the tick allocates nothing.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub struct Text {
+    buf: [u8; 100],
+    len: u8,
+}
+
+impl Text {
+    pub fn of(args: fmt::Arguments<'_>) -> Self {
+        let mut t = Self { buf: [0; 100], len: 0 };
+        let _ = fmt::write(&mut t, args);
+        t
+    }
+
+    pub fn as_str(&self) -> &str {
+        std::str::from_utf8(&self.buf[..usize::from(self.len)]).unwrap_or("")
+    }
+}
+
+impl fmt::Write for Text {
+    fn write_str(&mut self, s: &str) -> fmt::Result {
+        // Whole characters only, so the buffer always holds valid UTF-8.
+        for c in s.chars() {
+            let (at, n) = (usize::from(self.len), c.len_utf8());
+            if at + n > self.buf.len() {
+                return Ok(());
+            }
+            c.encode_utf8(&mut self.buf[at..]);
+            self.len += n as u8;
+        }
+        Ok(())
+    }
+}
+
+impl fmt::Debug for Text {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        fmt::Debug::fmt(self.as_str(), f)
+    }
+}
+
+impl fmt::Display for Text {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 /// Why a chunk was refused. Never clipped into acceptance: the agent gets this back.
 #[derive(Debug, Clone, PartialEq)]
 #[non_exhaustive]
 pub enum Rejection {
     Empty,
-    TooLong { len: usize, max: usize },
-    NotFinite { waypoint: usize, index: usize },
-    BadFrequency { freq_hz: f64, min_hz: f64, max_hz: f64 },
-    TooSlow { waypoint: usize, duration_s: f64, max_s: f64 },
-    JointOutOfRange { waypoint: usize, joint: usize, value: f64, min: f64, max: f64 },
-    GripperOutOfRange { waypoint: usize, value: f64 },
+    TooLong {
+        len: usize,
+        max: usize,
+    },
+    NotFinite {
+        waypoint: usize,
+        index: usize,
+    },
+    BadFrequency {
+        freq_hz: f64,
+        min_hz: f64,
+        max_hz: f64,
+    },
+    TooSlow {
+        waypoint: usize,
+        duration_s: f64,
+        max_s: f64,
+    },
+    JointOutOfRange {
+        waypoint: usize,
+        joint: usize,
+        value: f64,
+        min: f64,
+        max: f64,
+    },
+    GripperOutOfRange {
+        waypoint: usize,
+        value: f64,
+    },
     UnknownControlType(u32),
     UnsupportedControlType(&'static str),
-    ControlTypeLocked { locked: &'static str, requested: &'static str },
+    ControlTypeLocked {
+        locked: &'static str,
+        requested: &'static str,
+    },
     Busy,
+    /// No joint configuration within the limits puts the TCP at this ee_pose waypoint.
+    Unreachable {
+        waypoint: usize,
+        position_error_m: f64,
+        rotation_error_rad: f64,
+    },
+    /// The waypoint, or the path to it, collides or leaves the workspace.
+    Unsafe {
+        waypoint: usize,
+        detail: Text,
+    },
+    /// The arm is braking after a safety check stopped the previous motion.
+    Halting,
+    UnknownRequestKind(u32),
 }
 
 impl Rejection {
@@ -48,6 +134,10 @@ impl Rejection {
             Self::UnsupportedControlType(_) => "unsupported_control_type",
             Self::ControlTypeLocked { .. } => "control_type_locked",
             Self::Busy => "busy",
+            Self::Unreachable { .. } => "unreachable",
+            Self::Unsafe { .. } => "unsafe",
+            Self::Halting => "halting",
+            Self::UnknownRequestKind(_) => "unknown_request_kind",
         }
     }
 }
@@ -81,13 +171,20 @@ impl fmt::Display for Rejection {
                 write!(f, "actions[{waypoint}] gripper = {value} is outside [-1 (open), +1 (closed)]")
             }
             Self::UnknownControlType(t) => write!(f, "unknown control type code {t}: use \"joint\" or \"ee_pose\""),
-            Self::UnsupportedControlType(t) => {
-                write!(f, "control type \"{t}\" is not available in this runtime yet: use \"joint\"")
-            }
+            Self::UnsupportedControlType(t) => write!(f, "control type \"{t}\" is not available in this runtime"),
             Self::ControlTypeLocked { locked, requested } => {
                 write!(f, "this episode uses \"{locked}\" control; \"{requested}\" is rejected until reset()")
             }
             Self::Busy => write!(f, "another client's request is executing: wait for it to finish"),
+            Self::Unreachable { waypoint, position_error_m, rotation_error_rad } => write!(
+                f,
+                "actions[{waypoint}] is not reachable within the joint limits (best found: {:.1} mm, {:.2} deg away)",
+                position_error_m * 1e3,
+                rotation_error_rad.to_degrees()
+            ),
+            Self::Unsafe { waypoint, detail } => write!(f, "actions[{waypoint}] is refused: {detail}"),
+            Self::Halting => write!(f, "the arm is stopping after a safety check: send the chunk again once it rests"),
+            Self::UnknownRequestKind(k) => write!(f, "unknown request kind {k}"),
         }
     }
 }

@@ -80,8 +80,8 @@ struct Axis {
 
 /// Slack kept inside the position range for rounding and the last creep to rest, rad.
 const REST_SLACK_RAD: f64 = 1e-7;
-/// Velocity loop of the braking policy near rest: a = −v/(4·dt) when that is within limits.
-const BRAKE_GAIN_TICKS: f64 = 4.0;
+/// Velocity loop of the braking policy near rest: a = −v/(2·dt) when that is within limits.
+const BRAKE_GAIN_TICKS: f64 = 2.0;
 /// Ticks the check may simulate one by one (the constant-deceleration stretch is one step).
 const MAX_CHECK_TICKS: usize = 400;
 
@@ -121,16 +121,16 @@ impl Axis {
         v >= lo * (1.0 + 1e-12) - 1e-12 && v <= hi * (1.0 + 1e-12) + 1e-12
     }
 
-    /// Whether the braking policy, started at (p, v, a), comes to rest without leaving the
-    /// position range or exceeding the velocity bounds on the way.
-    fn can_stop(&self, mut p: f64, mut v: f64, mut a: f64) -> bool {
+    /// Where the braking policy, started at (p, v, a), comes to rest; `None` if it would leave
+    /// the position range or exceed the velocity bounds on the way.
+    fn can_stop(&self, mut p: f64, mut v: f64, mut a: f64) -> Option<f64> {
         let (lo, hi, dt) = (self.lo + REST_SLACK_RAD, self.hi - REST_SLACK_RAD, self.dt);
         for _ in 0..MAX_CHECK_TICKS {
             if !(p >= lo && p <= hi && self.velocity_ok(p, v)) {
-                return false;
+                return None;
             }
-            if v.abs() < 1e-9 && a.abs() < 1e-6 {
-                return true;
+            if v.abs() < 1e-8 && a.abs() < 1e-5 {
+                return Some(p);
             }
             // A stretch at full deceleration, done in closed form: k ticks of a = ∓acc.
             let s = v.signum();
@@ -143,7 +143,7 @@ impl Axis {
                     let p_end = p + s * dt * (k * v.abs() - dv * k * (k + 1.0) / 2.0);
                     let v_end = v - s * k * dv;
                     if !(p_end >= lo && p_end <= hi && self.stretch_within_velocity(p, v, p_end)) {
-                        return false;
+                        return None;
                     }
                     p = p_end;
                     v = v_end;
@@ -154,7 +154,7 @@ impl Axis {
             v += a * dt;
             p += v * dt;
         }
-        false
+        None
     }
 
     /// Position-dependent velocity bounds (FR3) along a constant-deceleration stretch from
@@ -178,6 +178,9 @@ pub struct JointTracker {
     pub dq_rad_s: [f64; N],
     pub ddq_rad_s2: [f64; N],
     pub finger_m: f64,
+    /// Where each joint comes to rest if braking starts now: the configuration the runtime
+    /// checks for collisions along with the command itself.
+    pub stop_q_rad: [f64; N],
     /// Ticks on which the braking policy overrode the tracking step (diagnostics).
     pub braking_ticks: u64,
 }
@@ -191,7 +194,7 @@ impl JointTracker {
             *qj = v.clamp(l.q_min_rad + cfg.q_margin_rad + 1e-6, l.q_max_rad - cfg.q_margin_rad - 1e-6);
         }
         let finger = if finger_m.is_finite() { finger_m.clamp(0.0, robot.finger_max_m) } else { 0.0 };
-        Self { q_rad: q, dq_rad_s: [0.0; N], ddq_rad_s2: [0.0; N], finger_m: finger, braking_ticks: 0 }
+        Self { q_rad: q, dq_rad_s: [0.0; N], ddq_rad_s2: [0.0; N], finger_m: finger, stop_q_rad: q, braking_ticks: 0 }
     }
 
     /// One tick of `dt_s`: follow `reference` within every limit. Allocation-free.
@@ -242,16 +245,41 @@ impl JointTracker {
                     bounded.lo = bounded.lo.max(g);
                 }
             }
-            if !bounded.can_stop(p + (v + a1 * dt_s) * dt_s, v + a1 * dt_s, a1) {
-                a1 = x.brake(v, a);
-                self.braking_ticks += 1;
+            match bounded.can_stop(p + (v + a1 * dt_s) * dt_s, v + a1 * dt_s, a1) {
+                Some(rest) => self.stop_q_rad[j] = rest,
+                // The braking step continues the path checked last tick: its rest point stays.
+                None => {
+                    a1 = x.brake(v, a);
+                    self.braking_ticks += 1;
+                }
             }
             let v1 = v + a1 * dt_s;
             self.ddq_rad_s2[j] = a1;
             self.dq_rad_s[j] = v1;
             self.q_rad[j] = p + v1 * dt_s;
         }
-        let target = robot.finger_from_gripper(if reference.gripper.is_finite() { reference.gripper } else { 0.0 });
+        self.step_finger(reference.gripper, dt_s, robot);
+    }
+
+    /// One tick of braking on every joint, toward the rest configuration `stop_q_rad`.
+    pub fn brake(&mut self, dt_s: f64, robot: &RobotModel, cfg: &LimiterConfig) {
+        for j in 0..N {
+            let x = Axis::new(robot.joints[j], cfg, dt_s);
+            let a1 = x.brake(self.dq_rad_s[j], self.ddq_rad_s2[j]);
+            self.ddq_rad_s2[j] = a1;
+            self.dq_rad_s[j] += a1 * dt_s;
+            self.q_rad[j] += self.dq_rad_s[j] * dt_s;
+        }
+        self.braking_ticks += 1;
+    }
+
+    /// True once every joint has stopped.
+    pub fn stopped(&self) -> bool {
+        self.dq_rad_s.iter().all(|v| v.abs() < 1e-9) && self.ddq_rad_s2.iter().all(|a| a.abs() < 1e-6)
+    }
+
+    fn step_finger(&mut self, gripper: f64, dt_s: f64, robot: &RobotModel) {
+        let target = robot.finger_from_gripper(if gripper.is_finite() { gripper } else { 0.0 });
         let step = robot.finger_speed_m_s * dt_s;
         self.finger_m += (target - self.finger_m).clamp(-step, step);
         self.finger_m = self.finger_m.clamp(0.0, robot.finger_max_m);

@@ -22,7 +22,21 @@ fn clarabel(h: &Mat7, g: &Vec7, lb: &Vec7, ub: &Vec7) -> Vec<f64> {
     let p: Vec<Vec<f64>> = (0..N).map(|r| (0..N).map(|c| if c >= r { h[(r, c)] } else { 0.0 }).collect()).collect();
     let p = CscMatrix::from(&p);
     let a: Vec<Vec<f64>> = (0..2 * N)
-        .map(|r| (0..N).map(|c| if r % N == c { if r < N { 1.0 } else { -1.0 } } else { 0.0 }).collect())
+        .map(|r| {
+            (0..N)
+                .map(|c| {
+                    if r % N == c {
+                        if r < N {
+                            1.0
+                        } else {
+                            -1.0
+                        }
+                    } else {
+                        0.0
+                    }
+                })
+                .collect()
+        })
         .collect();
     let a = CscMatrix::from(&a);
     let b: Vec<f64> = (0..2 * N).map(|r| if r < N { ub[r] } else { -lb[r - N] }).collect();

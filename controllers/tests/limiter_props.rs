@@ -54,7 +54,7 @@ fn run(profile: Profile, chunks: Vec<(Vec<[f64; 8]>, f64, u32)>) -> Result<(), T
     let mut accepted = 0;
     for (actions, freq, ticks) in chunks {
         // Accepted chunks replace the running one mid-motion, as the runtime does.
-        if let Ok(p) = ChunkPlan::joint(&actions, freq, t.q_rad, &r, &cfg) {
+        if let Ok(p) = ChunkPlan::joint(&actions, freq, t.q_rad, &r, &cfg, None) {
             plan = p;
             time = 0.0;
             accepted += 1;
@@ -112,7 +112,7 @@ fn valid_waypoints_mostly_pass_and_are_reached() {
             w
         })
         .collect();
-    let plan = ChunkPlan::joint(&actions, 0.0, start, &r, &cfg).expect("valid");
+    let plan = ChunkPlan::joint(&actions, 0.0, start, &r, &cfg, None).expect("valid");
     let mut t = JointTracker::at_rest(start, 0.04, &r, &cfg);
     let mut time = 0.0;
     while !(time > plan.duration_s() && t.settled_on(&plan.sample(time), &r)) {

@@ -61,7 +61,7 @@ fn ramp(start: [f64; N], goal: [f64; N], steps: usize, gripper: f64) -> Vec<[f64
 #[test]
 fn bad_chunks_are_rejected_with_the_offending_value() {
     let (r, c) = (panda(), LimiterConfig::default());
-    let plan = |a: &[[f64; 8]], f: f64| ChunkPlan::joint(a, f, HOME, &r, &c).map(|_| ()).unwrap_err();
+    let plan = |a: &[[f64; 8]], f: f64| ChunkPlan::joint(a, f, HOME, &r, &c, None).map(|_| ()).unwrap_err();
     assert_eq!(plan(&[], 0.0), Rejection::Empty);
     let mut nan = wp(HOME, 0.0);
     nan[2] = f64::NAN;
@@ -87,7 +87,7 @@ fn fast_rates_never_buy_speed_past_the_limits() {
     let (r, c) = (panda(), LimiterConfig::default());
     let mut goal = HOME;
     goal[0] = 1.0;
-    let plan = ChunkPlan::joint(&[wp(goal, -1.0)], 1000.0, HOME, &r, &c).expect("valid");
+    let plan = ChunkPlan::joint(&[wp(goal, -1.0)], 1000.0, HOME, &r, &c, None).expect("valid");
     // 1 rad at half of 2.175 rad/s takes at least 0.92 s, whatever freq says.
     assert!(plan.duration_s() >= 1.0 / (c.speed_scale * 2.175), "{}", plan.duration_s());
 }
@@ -155,7 +155,7 @@ fn a_chunk_is_tracked_to_its_last_waypoint() {
     goal[1] = -0.3;
     goal[5] = 2.0;
     let actions = ramp(HOME, goal, 10, 1.0);
-    let plan = ChunkPlan::joint(&actions, 0.0, HOME, &r, &c).expect("valid");
+    let plan = ChunkPlan::joint(&actions, 0.0, HOME, &r, &c, None).expect("valid");
     let mut t = JointTracker::at_rest(HOME, 0.04, &r, &c);
     let mut time = 0.0;
     loop {
@@ -184,7 +184,7 @@ fn a_chunk_near_a_limit_stops_on_target_within_acceleration_limits() {
     // One far waypoint and a finely sampled ramp: both must end on target without overshoot.
     for steps in [1usize, 25] {
         let actions = ramp(start, goal, steps, -1.0);
-        let plan = ChunkPlan::joint(&actions, 0.0, start, &r, &c).expect("valid");
+        let plan = ChunkPlan::joint(&actions, 0.0, start, &r, &c, None).expect("valid");
         let mut t = JointTracker::at_rest(start, 0.04, &r, &c);
         let mut time = 0.0;
         loop {

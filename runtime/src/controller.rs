@@ -3,6 +3,9 @@
 //! wall and lockstep mode, so lockstep results carry over.
 
 use controllers::chunk::Reference;
+use controllers::diffik::{self, DiffIkConfig};
+use controllers::ik::{IkConfig, IkSolver};
+use controllers::safety::SafetyChecks;
 use controllers::{ChunkPlan, JointTracker, LimiterConfig, Rejection, RobotModel};
 use ipc_schema::{ControlType, JointCommand, Reply, Request, RequestKind, RobotState, SimState, Status, N_JOINTS};
 
@@ -46,6 +49,15 @@ pub struct Controller {
     pub last_rejection: Option<&'static str>,
     /// Braking-policy ticks of trackers dropped at resets.
     braking_before: u64,
+    /// Collision, obstacle and workspace checks (none: joint limits only).
+    safety: Option<SafetyChecks>,
+    /// Checks ee_pose waypoints at acceptance, with a bounded effort per waypoint.
+    ik: IkSolver,
+    diffik: DiffIkConfig,
+    /// The joint reference that differential IK integrates while an ee_pose chunk runs.
+    q_ref: [f64; N_JOINTS],
+    /// A safety check stopped the motion: brake until at rest.
+    halting: bool,
 }
 
 /// A request the controller wants passed to the simulator.
@@ -56,6 +68,14 @@ pub enum Forward {
 
 impl Controller {
     pub fn new(robot: RobotModel, cfg: LimiterConfig, dt_s: f64) -> Self {
+        let ik_cfg = IkConfig {
+            limit_margin_rad: cfg.q_margin_rad,
+            max_restarts: 16,
+            max_total_iterations: 1500,
+            ..IkConfig::default()
+        };
+        #[allow(clippy::expect_used)] // the settings above are valid by construction
+        let ik = IkSolver::new(&robot, ik_cfg).expect("valid IK settings");
         let plan = ChunkPlan::hold([0.0; N_JOINTS], -1.0);
         let reference = plan.sample(0.0);
         Self {
@@ -74,7 +94,18 @@ impl Controller {
             cmd_seq: 0,
             last_rejection: None,
             braking_before: 0,
+            safety: None,
+            ik,
+            diffik: DiffIkConfig::default(),
+            q_ref: [0.0; N_JOINTS],
+            halting: false,
         }
+    }
+
+    /// Adds collision, obstacle and workspace checks to chunk acceptance and to every tick.
+    pub fn with_safety(mut self, safety: SafetyChecks) -> Self {
+        self.safety = Some(safety);
+        self
     }
 
     /// True while a chunk or reset is in progress (lockstep advances time only then).
@@ -103,6 +134,9 @@ impl Controller {
         if self.busy() && !preempts {
             return self.reject(req, Rejection::Busy);
         }
+        if self.halting {
+            return self.reject(req, Rejection::Halting);
+        }
         let Some(tracker) = self.tracker else {
             let r = Reply::new(
                 req.id,
@@ -129,14 +163,26 @@ impl Controller {
                             .reject(req, Rejection::ControlTypeLocked { locked: locked.name(), requested: ct.name() });
                     }
                 }
-                if ct == ControlType::EePose {
-                    return self.reject(req, Rejection::UnsupportedControlType("ee_pose"));
-                }
                 let len = (req.len as usize).min(req.actions.len() + 1);
                 if len > req.actions.len() {
                     return self.reject(req, Rejection::TooLong { len: req.len as usize, max: req.actions.len() });
                 }
-                match ChunkPlan::joint(&req.actions[..len], req.freq_hz, tracker.q_rad, &self.robot, &self.cfg) {
+                let (actions, safety) = (&req.actions[..len], self.safety.as_ref());
+                let plan = match ct {
+                    ControlType::Joint => {
+                        ChunkPlan::joint(actions, req.freq_hz, tracker.q_rad, &self.robot, &self.cfg, safety)
+                    }
+                    ControlType::EePose => ChunkPlan::ee_pose(
+                        actions,
+                        req.freq_hz,
+                        tracker.q_rad,
+                        &self.robot,
+                        &self.cfg,
+                        &self.ik,
+                        safety,
+                    ),
+                };
+                match plan {
                     Ok(plan) => {
                         let superseded = self.active.map(|old| {
                             let mut r = Reply::formatted(
@@ -149,6 +195,7 @@ impl Controller {
                             r
                         });
                         self.plan = plan;
+                        self.q_ref = tracker.q_rad;
                         self.locked = Some(ct);
                         self.active = Some(Active { id: req.id, client: req.client, t_s: 0.0, phase: Phase::Moving });
                         (superseded, Forward::None)
@@ -156,15 +203,7 @@ impl Controller {
                     Err(why) => self.reject(req, why),
                 }
             }
-            other => {
-                let r = Reply::formatted(
-                    req.id,
-                    req.client,
-                    Status::Rejected,
-                    format_args!("unknown request kind {other}"),
-                );
-                (Some(r), Forward::None)
-            }
+            other => self.reject(req, Rejection::UnknownRequestKind(other)),
         }
     }
 
@@ -201,10 +240,65 @@ impl Controller {
         self.ensure_tracker(state);
         if let Some(a) = self.active.as_mut() {
             a.t_s += self.dt_s;
-            self.reference = self.plan.sample(a.t_s);
+            match self.plan.sample_pose(a.t_s) {
+                // ee_pose: differential IK turns the TCP reference into a joint reference.
+                Some(p) => {
+                    let (dq, _) = diffik::step(
+                        &self.q_ref,
+                        &p.pose,
+                        &p.twist,
+                        &self.plan.start_q(),
+                        &self.robot,
+                        &self.cfg,
+                        &self.diffik,
+                    );
+                    for (q, v) in self.q_ref.iter_mut().zip(dq.iter()) {
+                        *q += v * self.dt_s;
+                    }
+                    self.reference = Reference {
+                        q_rad: self.q_ref,
+                        dq_rad_s: std::array::from_fn(|j| dq[j]),
+                        gripper: p.gripper,
+                        goal_q_rad: [f64::NAN; N_JOINTS],
+                        reached: p.reached,
+                        finished: p.finished,
+                    };
+                }
+                None => self.reference = self.plan.sample(a.t_s),
+            }
         }
         let Some(tracker) = self.tracker.as_mut() else { unreachable!("set above") };
-        tracker.step(&self.reference, self.dt_s, &self.robot, &self.cfg);
+        let before = *tracker;
+        if self.halting {
+            tracker.brake(self.dt_s, &self.robot, &self.cfg);
+        } else {
+            tracker.step(&self.reference, self.dt_s, &self.robot, &self.cfg);
+        }
+        // The command and the configuration its braking would end in must both pass the
+        // checks; if not, brake along the path checked on the previous tick.
+        if let (false, Some(safety)) = (self.halting, self.safety.as_ref()) {
+            if let Err(v) = safety.check(&tracker.q_rad).and_then(|_| safety.check(&tracker.stop_q_rad)) {
+                *tracker = before;
+                tracker.brake(self.dt_s, &self.robot, &self.cfg);
+                self.halting = true;
+                if let Some(a) = self.active.take() {
+                    let mut r = Reply::formatted(a.id, a.client, Status::Failed, format_args!("stopped: {v}"));
+                    r.executed = self.reference.reached as u32;
+                    reply = Some(r);
+                }
+            }
+        }
+        if self.halting && tracker.stopped() {
+            self.halting = false;
+            self.reference = Reference {
+                q_rad: tracker.q_rad,
+                dq_rad_s: [0.0; N_JOINTS],
+                gripper: self.reference.gripper,
+                goal_q_rad: tracker.q_rad,
+                reached: self.reference.reached,
+                finished: true,
+            };
+        }
         let tracker = *tracker;
 
         // Gripper counts as done when the measured finger has stopped or reached the command.
@@ -237,7 +331,7 @@ impl Controller {
                     }
                 }
                 Phase::Settling { since_s } => {
-                    let target = self.plan.last();
+                    let target = self.reference;
                     let mut err = 0.0f64;
                     let mut worst = 0;
                     let mut moving = false;

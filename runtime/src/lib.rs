@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{bail, Context};
+use controllers::safety::SafetyChecks;
 use controllers::{LimiterConfig, RobotModel};
 use ipc_schema::process::{self, PeerWatch};
 use ipc_schema::{JointCommand, Mode, Qos, Reply, Request, RobotState, RuntimeInfo, Services, SimReset, SimState};
@@ -35,16 +36,61 @@ pub struct RunConfig {
     pub state_timeout: Duration,
 }
 
-/// Reads the robot of a scene file: its URDF (relative to the scene) and TCP link.
+/// Reads the robot of a scene file: its URDF (relative to the scene), TCP link and limit
+/// profile (`limits = "panda" | "fr3"`, default panda).
 pub fn robot_from_scene(scene: &Path) -> anyhow::Result<RobotModel> {
+    Ok(scene_robot(scene)?.0)
+}
+
+/// The robot of a scene and the safety checks for it: its collision geometry, the table as an
+/// obstacle, and the workspace (`[safety] workspace_min_m`, `workspace_max_m`, `margin_m`;
+/// by default the table's footprint up to 1 m above it, and a 2 mm margin).
+pub fn scene_robot(scene: &Path) -> anyhow::Result<(RobotModel, SafetyChecks)> {
     let text = std::fs::read_to_string(scene).with_context(|| format!("reading scene {}", scene.display()))?;
     let table: toml::Table = toml::from_str(&text).with_context(|| format!("parsing scene {}", scene.display()))?;
     let robot = table.get("robot").and_then(|r| r.as_table()).context("scene has no [robot] table")?;
     let urdf = robot.get("urdf").and_then(|u| u.as_str()).context("scene [robot] has no urdf path")?;
     let tcp = robot.get("tcp_link").and_then(|u| u.as_str()).unwrap_or("hand_tcp");
+    let limits = robot.get("limits").and_then(|u| u.as_str()).unwrap_or("panda");
+    let profile = controllers::Profile::from_name(limits)
+        .with_context(|| format!("scene [robot] limits = \"{limits}\": use \"panda\" or \"fr3\""))?;
     let urdf_path = scene.parent().unwrap_or(Path::new(".")).join(urdf);
     let xml = std::fs::read_to_string(&urdf_path).with_context(|| format!("reading URDF {}", urdf_path.display()))?;
-    Ok(RobotModel::from_urdf_str(&xml, tcp, controllers::Profile::Panda)?)
+    let model = RobotModel::from_urdf_str(&xml, tcp, profile)?;
+
+    let vec3 = |t: Option<&toml::Table>, key: &str| -> anyhow::Result<Option<[f64; 3]>> {
+        let Some(v) = t.and_then(|t| t.get(key)) else { return Ok(None) };
+        let a: Vec<f64> = v.clone().try_into().with_context(|| format!("scene: {key} must be 3 numbers"))?;
+        anyhow::ensure!(a.len() == 3, "scene: {key} must be 3 numbers, got {}", a.len());
+        Ok(Some([a[0], a[1], a[2]]))
+    };
+    let base = vec3(Some(robot), "base_position_m")?.unwrap_or([0.0; 3]);
+    let yaw = robot.get("base_yaw_rad").and_then(|v| v.as_float()).unwrap_or(0.0);
+    let tab = table.get("table").and_then(|t| t.as_table());
+    let table_spec = match tab {
+        Some(t) => {
+            let top = vec3(Some(t), "top_center_m")?.context("scene [table] has no top_center_m")?;
+            let size: Vec<f64> = t
+                .get("size_m")
+                .context("scene [table] has no size_m")?
+                .clone()
+                .try_into()
+                .context("scene [table] size_m must be 2 numbers")?;
+            anyhow::ensure!(size.len() == 2, "scene [table] size_m must be 2 numbers");
+            Some(controllers::safety::Table { top_center_m: top, size_m: [size[0], size[1]] })
+        }
+        None => None,
+    };
+    let safety = table.get("safety").and_then(|t| t.as_table());
+    let ws = match (vec3(safety, "workspace_min_m")?, vec3(safety, "workspace_max_m")?) {
+        (Some(lo), Some(hi)) => Some((lo, hi)),
+        (None, None) => None,
+        _ => anyhow::bail!("scene [safety] needs both workspace_min_m and workspace_max_m"),
+    };
+    let margin = safety.and_then(|t| t.get("margin_m")).and_then(|v| v.as_float()).unwrap_or(0.002);
+    let checks = SafetyChecks::for_scene(&xml, &model, base, yaw, table_spec, ws, margin)
+        .with_context(|| format!("safety checks for scene {}", scene.display()))?;
+    Ok((model, checks))
 }
 
 type Pub<T> = iceoryx2::port::publisher::Publisher<iceoryx2::prelude::ipc::Service, T, ()>;
@@ -197,9 +243,9 @@ fn runtime_info(ctl: &Controller, mode: Mode, period_ns: u64) -> RuntimeInfo {
 /// Runs the runtime until stopped; returns what the ticks recorded.
 pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
     let services = Services::new(&cfg.instance)?;
-    let robot = robot_from_scene(&cfg.scene)?;
+    let (robot, safety) = scene_robot(&cfg.scene)?;
     let dt_s = cfg.period_ns as f64 * 1e-9;
-    let mut ctl = Controller::new(robot, LimiterConfig::default(), dt_s);
+    let mut ctl = Controller::new(robot, LimiterConfig::default(), dt_s).with_safety(safety);
     let ports = Ports::open(&services)?;
     let sim = PeerWatch::spawn(process::sim_node(&cfg.instance), Duration::from_secs(30));
 

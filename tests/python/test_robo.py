@@ -111,10 +111,41 @@ def test_bad_commands_are_rejected_with_a_reason_and_nothing_moves(wall, cmd, re
 def test_control_type_is_fixed_per_episode(wall) -> None:
     assert robo.reset() == 1
     ee = robo.get_state([])["ee_pose"]
-    assert robo.post_actions({"actions": [ee + [-1.0]], "type": "ee_pose", "freq": ""}) == 0
-    assert "not available" in feedback()["reason"]
+    assert robo.post_actions({"actions": [ee + [-1.0]], "type": "ee_pose", "freq": ""}) == 1, feedback()
     here = robo.get_state([])["joint"]
-    assert robo.post_actions({"actions": [here + [-1.0]], "type": "joint", "freq": ""}) == 1
+    assert robo.post_actions({"actions": [here + [-1.0]], "type": "joint", "freq": ""}) == 0
+    assert "uses \"ee_pose\" control" in feedback()["reason"], feedback()
+    assert robo.reset() == 1
+    here = robo.get_state([])["joint"]
+    assert robo.post_actions({"actions": [here + [-1.0]], "type": "joint", "freq": ""}) == 1, feedback()
+
+
+def test_ee_pose_moves_the_tcp_along_a_straight_line(lockstep) -> None:
+    assert robo.reset() == 1
+    start = robo.get_state([])["ee_pose"]
+    goal = [start[0] + 0.12, start[1] - 0.1, start[2] - 0.08] + start[3:]
+    steps = 10
+    chunk = [[s + (g - s) * (k + 1) / steps for s, g in zip(start, goal)] + [-1.0] for k in range(steps)]
+    assert robo.post_actions({"actions": chunk, "type": "ee_pose", "freq": ""}) == 1, feedback()
+    end = robo.get_state([])["ee_pose"]
+    assert max(abs(a - b) for a, b in zip(end[:3], goal[:3])) < 0.005, (end, goal)
+    # The orientation was held: same axis-angle vector within a degree.
+    assert max(abs(a - b) for a, b in zip(end[3:], goal[3:])) < math.radians(1.0), (end, goal)
+
+
+def test_unreachable_and_unsafe_ee_poses_are_rejected_untouched(lockstep) -> None:
+    assert robo.reset() == 1
+    s = robo.get_state([])
+    before, ee = s["joint"], s["ee_pose"]
+    far = [ee[0] + 2.0, ee[1], ee[2]] + ee[3:]
+    assert robo.post_actions({"actions": [far + [-1.0]], "type": "ee_pose", "freq": ""}) == 0
+    assert "not reachable" in feedback()["reason"], feedback()
+    # Through the table top (z = 0 in the base frame).
+    low = [ee[0], ee[1], -0.05] + ee[3:]
+    assert robo.post_actions({"actions": [low + [-1.0]], "type": "ee_pose", "freq": ""}) == 0
+    assert "table" in feedback()["reason"] or "workspace" in feedback()["reason"], feedback()
+    after = robo.get_state([])["joint"]
+    assert max(abs(a - b) for a, b in zip(before, after)) < 1e-3
 
 
 def test_reset_restores_the_initial_pose(wall) -> None:
