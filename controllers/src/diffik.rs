@@ -128,7 +128,9 @@ impl Default for DiffIkConfig {
             gain_per_s: 30.0,
             rotation_weight: 0.3,
             damping: 1e-4,
-            posture_weight: 1e-6,
+            // Off by default: a pull in the null space keeps the joints creeping long after
+            // the TCP has arrived, and the box constraints already keep them off the limits.
+            posture_weight: 0.0,
             posture_gain_per_s: 1.0,
             limit_horizon_s: 0.05,
         }
