@@ -141,3 +141,43 @@ fn waypoints_through_the_table_or_the_arm_itself_are_refused() {
     assert!(reply.reason_str().contains("link1"), "{}", reply.reason_str());
     assert_eq!(state.q_rad, HOME, "a refused chunk moves nothing");
 }
+
+#[test]
+fn the_per_tick_check_halts_a_motion_that_acceptance_did_not_catch() {
+    let (robot, safety) = runtime::scene_robot(&scene()).expect("scene");
+    let cfg = LimiterConfig::default();
+    // Accepted without checks, then checked every tick: the chunk heads through the table.
+    let mut ctl = Controller::new(robot.clone(), cfg, 0.001);
+    let mut state = SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, ..SimState::default() };
+    let down = [0.0, 1.7, 0.0, -0.2, 0.0, 1.571, 0.785];
+    let (reply, _) = ctl.request(&request(1, ControlType::Joint, &[joint_wp(down, -1.0)]), &state);
+    assert!(reply.is_none());
+    let mut ctl = ctl.with_safety(safety.clone());
+    let mut monitor = controllers::monitor::Monitor::new(0.001);
+    monitor.start_at(&HOME, 0.04, &robot);
+    let mut halted = None;
+    for tick in 0..20_000 {
+        let (cmd, reply) = ctl.tick(&state);
+        monitor.observe(&cmd.q_rad, cmd.finger_m, &robot, &cfg);
+        state.seq += 1;
+        state.q_rad = cmd.q_rad;
+        state.dq_rad_s = cmd.dq_rad_s;
+        if let Some(r) = reply {
+            assert_eq!(r.status, Status::Failed as u32);
+            assert!(r.reason_str().starts_with("stopped:") && r.reason_str().contains("table"), "{}", r.reason_str());
+            halted = Some(tick);
+            // While braking, new chunks wait.
+            let (again, _) = ctl.request(&request(2, ControlType::Joint, &[joint_wp(HOME, -1.0)]), &state);
+            assert!(again.expect("refused").reason_str().contains("stopping"));
+        }
+        if halted.is_some() && cmd.dq_rad_s.iter().all(|v| *v == 0.0) {
+            break;
+        }
+    }
+    assert!(halted.is_some(), "never halted");
+    assert_eq!(monitor.violations.total(), 0, "{:?}", monitor.first);
+    // It came to rest clear of the table, and takes chunks again.
+    safety.check(&state.q_rad).expect("the rest configuration passes the checks");
+    let (reply, _) = run(&mut ctl, &mut state, &request(3, ControlType::Joint, &[joint_wp(HOME, -1.0)]));
+    assert_eq!(reply.status, Status::Executed as u32, "{}", reply.reason_str());
+}
