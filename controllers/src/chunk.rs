@@ -15,6 +15,12 @@ use crate::N;
 
 /// Largest chunk the plan holds.
 pub const MAX_WAYPOINTS: usize = 256;
+/// Spacing of the IK and safety samples along an ee_pose chunk's TCP path, m.
+pub const PATH_SPACING_M: f64 = 0.01;
+/// Rotation counts as this many metres per radian of path length.
+const PATH_ROT_M_PER_RAD: f64 = 0.1;
+/// At most this many samples per chunk (the spacing grows for long chunks).
+pub const MAX_PATH_SAMPLES: usize = 256;
 
 /// One joint-space target: arm joints and the gripper value (−1 open … +1 closed).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -144,9 +150,11 @@ impl ChunkPlan {
     }
 
     /// Checks an ee_pose chunk: `[x, y, z, ax, ay, az, _, g]` TCP targets in the base frame
-    /// (axis-angle rotation). Every waypoint must have an IK solution within the joint limits
-    /// (each seeded with the previous one), and with `safety` that solution and the path to it
-    /// must be collision-free. Segments are timed for the TCP's speed limits and the joints'.
+    /// (axis-angle rotation). The straight TCP path through them is sampled every
+    /// [`PATH_SPACING_M`] (coarser for long chunks): every sample must have an IK solution
+    /// within the joint limits, seeded with the previous one, and with `safety` that solution
+    /// must be collision-free and inside the workspace. Segments are timed for the TCP's speed
+    /// limits and the joints'.
     pub fn ee_pose(
         actions: &[[f64; 8]],
         freq_hz: f64,
@@ -160,6 +168,22 @@ impl ChunkPlan {
         let mut plan = Self::hold(start_q, 0.0);
         plan.len = actions.len();
         plan.poses[0] = robot.kin.fk(&start_q, robot.kin.tcp);
+        // Sample spacing along the TCP path: 1 cm, coarser for long chunks so that one chunk
+        // never costs more than MAX_PATH_SAMPLES IK solves in all.
+        let mut length = 0.0;
+        let mut last = plan.poses[0];
+        for a in actions {
+            if a[..6].iter().all(|v| v.is_finite()) {
+                let p = Isometry3::from_parts(
+                    Translation3::new(a[0], a[1], a[2]),
+                    UnitQuaternion::from_scaled_axis(Vector3::new(a[3], a[4], a[5])),
+                );
+                length += (p.translation.vector - last.translation.vector).norm()
+                    + PATH_ROT_M_PER_RAD * p.rotation.angle_to(&last.rotation);
+                last = p;
+            }
+        }
+        let spacing = (length / MAX_PATH_SAMPLES as f64).max(PATH_SPACING_M);
         let mut prev = start_q;
         let mut t = 0.0;
         let cart = robot.cartesian;
@@ -169,33 +193,50 @@ impl ChunkPlan {
                 Translation3::new(a[0], a[1], a[2]),
                 UnitQuaternion::from_scaled_axis(Vector3::new(a[3], a[4], a[5])),
             );
-            let sol = match ik.solve(&pose, &prev) {
-                Ok(s) if s.ok => s,
-                Ok(s) => {
-                    return Err(Rejection::Unreachable {
-                        waypoint: w,
-                        position_error_m: s.position_error_m,
-                        rotation_error_rad: s.rotation_error_rad,
-                    })
+            // The straight TCP segment to this waypoint, sampled: every sample must have an IK
+            // solution near the previous one, and with `safety` pass the checks.
+            let from = plan.poses[w];
+            let n = (((pose.translation.vector - from.translation.vector).norm()
+                + PATH_ROT_M_PER_RAD * pose.rotation.angle_to(&from.rotation))
+                / spacing)
+                .ceil()
+                .clamp(1.0, MAX_PATH_SAMPLES as f64) as usize;
+            let mut q = prev;
+            for k in 1..=n {
+                let s = k as f64 / n as f64;
+                let sample = Isometry3::from_parts(
+                    Translation3::from(from.translation.vector.lerp(&pose.translation.vector, s)),
+                    from.rotation.slerp(&pose.rotation, s),
+                );
+                let sol = match ik.solve(&sample, &q) {
+                    Ok(sol) if sol.ok => sol,
+                    Ok(sol) => {
+                        return Err(Rejection::Unreachable {
+                            waypoint: w,
+                            position_error_m: sol.position_error_m,
+                            rotation_error_rad: sol.rotation_error_rad,
+                        })
+                    }
+                    Err(_) => return Err(Rejection::NotFinite { waypoint: w, index: 0 }),
+                };
+                if let Some(checks) = safety {
+                    checks.check(&sol.q).map_err(|v| unsafe_at(w, v))?;
                 }
-                Err(_) => return Err(Rejection::NotFinite { waypoint: w, index: 0 }),
-            };
-            if let Some(s) = safety {
-                s.check_path(&prev, &sol.q).map_err(|v| unsafe_at(w, v))?;
+                q = sol.q;
             }
             let from = plan.poses[w];
             let d = (pose.translation.vector - from.translation.vector).norm();
             let ang = pose.rotation.angle_to(&from.rotation);
             let tcp_s = trapezoid_s(d, cfg.tcp_speed_scale * cart.v_m_s, cfg.accel_scale * cart.a_m_s2)
                 .max(trapezoid_s(ang, cfg.tcp_speed_scale * cart.w_rad_s, cfg.accel_scale * cart.dw_rad_s2));
-            t += plan.segment_s(w, &prev, &sol.q, freq, robot, cfg)?.max(tcp_s);
+            t += plan.segment_s(w, &prev, &q, freq, robot, cfg)?.max(tcp_s);
             if t > cfg.max_chunk_duration_s {
                 return Err(Rejection::TooSlow { waypoint: w, duration_s: t, max_s: cfg.max_chunk_duration_s });
             }
-            plan.waypoints[w] = Waypoint { q_rad: sol.q, gripper: a[N] };
+            plan.waypoints[w] = Waypoint { q_rad: q, gripper: a[N] };
             plan.ends_s[w] = t;
             plan.poses[w + 1] = pose;
-            prev = sol.q;
+            prev = q;
         }
         plan.find_turns();
         plan.cartesian = true;

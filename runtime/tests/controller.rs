@@ -181,3 +181,27 @@ fn the_per_tick_check_halts_a_motion_that_acceptance_did_not_catch() {
     let (reply, _) = run(&mut ctl, &mut state, &request(3, ControlType::Joint, &[joint_wp(HOME, -1.0)]));
     assert_eq!(reply.status, Status::Executed as u32, "{}", reply.reason_str());
 }
+
+#[test]
+fn an_ee_pose_segment_is_checked_between_its_waypoints() {
+    let (robot, safety) = runtime::scene_robot(&scene()).expect("scene");
+    let down = robot.kin.fk(&HOME, robot.kin.tcp).rotation.scaled_axis();
+    let wp = |x: f64, y: f64, z: f64| [x, y, z, down.x, down.y, down.z, 0.0, -1.0];
+    let fresh = || {
+        let state = SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, ..SimState::default() };
+        (Controller::new(robot.clone(), LimiterConfig::default(), 0.001).with_safety(safety.clone()), state)
+    };
+    // Both ends are fine on their own...
+    for end in [wp(0.12, 0.45, 0.25), wp(0.12, -0.45, 0.25)] {
+        let (mut ctl, mut state) = fresh();
+        let (reply, _) = run(&mut ctl, &mut state, &request(1, ControlType::EePose, &[end]));
+        assert_eq!(reply.status, Status::Executed as u32, "{:?}: {}", &end[..3], reply.reason_str());
+    }
+    // ...but the straight line between them passes too close to the base for the arm to follow.
+    let (mut ctl, mut state) = fresh();
+    let chunk = [wp(0.12, 0.45, 0.25), wp(0.12, -0.45, 0.25)];
+    let (reply, _) = run(&mut ctl, &mut state, &request(2, ControlType::EePose, &chunk));
+    assert_eq!(reply.status, Status::Rejected as u32);
+    assert!(reply.reason_str().starts_with("actions[1]"), "{}", reply.reason_str());
+    eprintln!("{}", reply.reason_str());
+}
