@@ -82,6 +82,8 @@ struct Axis {
 const REST_SLACK_RAD: f64 = 1e-7;
 /// Velocity loop of the braking policy near rest: a = −v/(2·dt) when that is within limits.
 const BRAKE_GAIN_TICKS: f64 = 2.0;
+/// The TCP speed (share of the published limits) past which a step is replaced by braking.
+const CARTESIAN_GUARD: f64 = 0.9;
 /// Ticks the check may simulate one by one (the constant-deceleration stretch is one step).
 const MAX_CHECK_TICKS: usize = 400;
 
@@ -181,8 +183,10 @@ pub struct JointTracker {
     /// Where each joint comes to rest if braking starts now: the configuration the runtime
     /// checks for collisions along with the command itself.
     pub stop_q_rad: [f64; N],
-    /// Ticks on which the braking policy overrode the tracking step (diagnostics).
+    /// Ticks on which the braking policy overrode the tracking step of some joint.
     pub braking_ticks: u64,
+    /// Ticks on which the TCP speed guard replaced the whole step by braking.
+    pub tcp_guard_ticks: u64,
 }
 
 impl JointTracker {
@@ -194,12 +198,22 @@ impl JointTracker {
             *qj = v.clamp(l.q_min_rad + cfg.q_margin_rad + 1e-6, l.q_max_rad - cfg.q_margin_rad - 1e-6);
         }
         let finger = if finger_m.is_finite() { finger_m.clamp(0.0, robot.finger_max_m) } else { 0.0 };
-        Self { q_rad: q, dq_rad_s: [0.0; N], ddq_rad_s2: [0.0; N], finger_m: finger, stop_q_rad: q, braking_ticks: 0 }
+        Self {
+            q_rad: q,
+            dq_rad_s: [0.0; N],
+            ddq_rad_s2: [0.0; N],
+            finger_m: finger,
+            stop_q_rad: q,
+            braking_ticks: 0,
+            tcp_guard_ticks: 0,
+        }
     }
 
     /// One tick of `dt_s`: follow `reference` within every limit. Allocation-free.
     #[allow(clippy::needless_range_loop)] // joint j indexes limits, reference and state alike
     pub fn step(&mut self, reference: &Reference, dt_s: f64, robot: &RobotModel, cfg: &LimiterConfig) {
+        let before = *self;
+        let mut braked = false;
         let mut v_des = [0.0; N];
         for j in 0..N {
             let x = Axis::new(robot.joints[j], cfg, dt_s);
@@ -250,7 +264,7 @@ impl JointTracker {
                 // The braking step continues the path checked last tick: its rest point stays.
                 None => {
                     a1 = x.brake(v, a);
-                    self.braking_ticks += 1;
+                    braked = true;
                 }
             }
             let v1 = v + a1 * dt_s;
@@ -258,7 +272,24 @@ impl JointTracker {
             self.dq_rad_s[j] = v1;
             self.q_rad[j] = p + v1 * dt_s;
         }
+        // A step that would carry the TCP faster than CARTESIAN_GUARD of its published limits
+        // is replaced by braking every joint from where the tick began.
+        if !self.tcp_speed_within(robot, CARTESIAN_GUARD) {
+            *self = before;
+            self.brake(dt_s, robot, cfg);
+            self.tcp_guard_ticks += 1;
+        } else if braked {
+            self.braking_ticks += 1;
+        }
         self.step_finger(reference.gripper, dt_s, robot);
+    }
+
+    /// Whether the commanded TCP twist stays within `fraction` of the Cartesian limits.
+    fn tcp_speed_within(&self, robot: &RobotModel, fraction: f64) -> bool {
+        let (_, jac) = robot.kin.jacobian(&self.q_rad, robot.kin.tcp);
+        let twist = jac * nalgebra::SVector::<f64, N>::from_column_slice(&self.dq_rad_s);
+        twist.fixed_rows::<3>(0).norm() <= fraction * robot.cartesian.v_m_s
+            && twist.fixed_rows::<3>(3).norm() <= fraction * robot.cartesian.w_rad_s
     }
 
     /// One tick of braking on every joint, toward the rest configuration `stop_q_rad`.

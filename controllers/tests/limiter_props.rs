@@ -122,3 +122,33 @@ fn valid_waypoints_mostly_pass_and_are_reached() {
     }
     assert!(t.q_rad.iter().zip(goal).all(|(q, g)| (q - g).abs() < 1e-6));
 }
+
+/// With the TCP speed shaping switched off, every joint racing toward a far target at full
+/// speed would carry the TCP past its limit: the guard brakes instead, and the monitor sees
+/// no violation.
+#[test]
+fn the_tcp_speed_guard_holds_when_shaping_is_off() {
+    let r = robot(Profile::Panda);
+    let cfg = LimiterConfig { tcp_speed_scale: 10.0, ..LimiterConfig::default() };
+    let a = [-2.5, -1.2, -2.0, -2.8, -2.0, 0.5, -2.0];
+    let b = [2.5, 1.2, 2.0, -0.3, 2.0, 3.5, 2.0];
+    let mut t = JointTracker::at_rest(a, 0.04, &r, &cfg);
+    let mut m = Monitor::new(0.001);
+    m.start_at(&t.q_rad, t.finger_m, &r);
+    let mut peak: f64 = 0.0;
+    for goal in [b, a, b] {
+        // A bare reference: far away, no feed-forward, so feedback drives every joint at once.
+        let reference =
+            Reference { q_rad: goal, dq_rad_s: [0.0; N], gripper: 0.0, goal_q_rad: goal, reached: 0, finished: true };
+        for _ in 0..4000 {
+            let before = r.kin.fk(&t.q_rad, r.kin.tcp).translation.vector;
+            t.step(&reference, 0.001, &r, &cfg);
+            m.observe(&t.q_rad, t.finger_m, &r, &cfg);
+            peak = peak.max((r.kin.fk(&t.q_rad, r.kin.tcp).translation.vector - before).norm() / 0.001);
+        }
+    }
+    assert_eq!(m.violations.total(), 0, "{:?}", m.first);
+    assert!(t.tcp_guard_ticks > 0, "the guard never acted (peak {peak} m/s)");
+    assert!(peak <= 0.9 * r.cartesian.v_m_s + 0.01, "peak TCP speed {peak} m/s");
+    eprintln!("peak TCP speed {peak:.3} m/s, {} guard ticks", t.tcp_guard_ticks);
+}
