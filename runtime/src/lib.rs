@@ -315,10 +315,12 @@ fn wall_loop(
         if ports.newest_state(&mut latest)? {
             last_state_ns = woke;
         }
-        let rejected = ports.serve_requests(ctl, &latest, &mut stats)?;
         let (cmd, reply) = ctl.tick(&latest);
         ports.cmd_pub.send_copy(cmd)?;
         ports.sim_wake.notify()?;
+        // Requests after the command is out: accepting one (IK, path checks) can take tens of
+        // microseconds, which then delays nothing but this tick's sleep.
+        let rejected = ports.serve_requests(ctl, &latest, &mut stats)?;
         // The state first: an agent woken by the reply must already see where the arm is.
         robot_seq += 1;
         let wake_agents = rejected || reply.is_some();
