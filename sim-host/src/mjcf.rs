@@ -84,6 +84,8 @@ struct Writer<'a> {
     children: HashMap<String, Vec<&'a urdf_rs::Joint>>,
     cameras_by_link: HashMap<String, Vec<&'a CameraSpec>>,
     tcp_link: String,
+    /// Arm joint ranges from the robot model: its profile's limits, not necessarily the URDF's.
+    ranges: HashMap<String, (f64, f64)>,
     out: String,
 }
 
@@ -206,13 +208,14 @@ impl Writer<'_> {
             };
             if let Some(kind) = kind {
                 let (armature, damping) = if kind == "hinge" { (0.1, 1.0) } else { (0.0, 5.0) };
+                let (lower, upper) = self.ranges.get(&j.name).copied().unwrap_or((j.limit.lower, j.limit.upper));
                 writeln!(
                     self.out,
                     "{indent}  <joint name=\"{}\" type=\"{kind}\" axis=\"{}\" range=\"{} {}\" armature=\"{armature}\" damping=\"{damping}\" actuatorfrcrange=\"{} {}\"/>",
                     j.name,
                     f3(v3(&j.axis.xyz)),
-                    j.limit.lower,
-                    j.limit.upper,
+                    lower,
+                    upper,
                     -j.limit.effort,
                     j.limit.effort
                 )
@@ -226,7 +229,9 @@ impl Writer<'_> {
 }
 
 /// Compiles a scene and its robot into one MJCF document.
-pub fn compile(scene: &Scene, urdf_xml: &str, arm_joints: &[String], finger_joint: &str) -> Result<String, MjcfError> {
+/// Compiles a scene around the robot of `model` (its arm joints, gripper and joint ranges).
+pub fn compile(scene: &Scene, urdf_xml: &str, model: &controllers::RobotModel) -> Result<String, MjcfError> {
+    let (arm_joints, finger_joint) = (&model.joint_names, model.finger_joint.as_str());
     let robot = urdf_rs::read_from_string(urdf_xml).map_err(|e| MjcfError::Urdf(e.to_string()))?;
     let child_links: Vec<&str> = robot.joints.iter().map(|j| j.child.link.as_str()).collect();
     let root = robot.links.iter().find(|l| !child_links.contains(&l.name.as_str())).ok_or(MjcfError::NoRoot)?;
@@ -250,6 +255,12 @@ pub fn compile(scene: &Scene, urdf_xml: &str, arm_joints: &[String], finger_join
         children,
         cameras_by_link,
         tcp_link: scene.robot.tcp_link.clone(),
+        ranges: model
+            .joint_names
+            .iter()
+            .cloned()
+            .zip(model.joints.iter().map(|l| (l.q_min_rad, l.q_max_rad)))
+            .collect(),
         out: String::new(),
     };
     let max_w = scene.cameras.iter().map(|c| c.width).max().unwrap_or(640);

@@ -36,6 +36,8 @@ pub struct Scene {
     /// Physics timestep; one command sample is applied per step.
     #[serde(default = "default_timestep")]
     pub timestep_s: f64,
+    #[serde(default)]
+    pub safety: Option<SafetySpec>,
 }
 
 fn default_timestep() -> f64 {
@@ -57,6 +59,31 @@ pub struct RobotSpec {
     /// −1 open … +1 closed.
     #[serde(default = "default_gripper")]
     pub initial_gripper: f64,
+    /// Limit profile: "panda" (default) or "fr3"; kinematics come from the URDF either way.
+    #[serde(default = "default_limits")]
+    pub limits: String,
+}
+
+impl RobotSpec {
+    /// The limit profile (checked at load, so this is always a known name).
+    pub fn profile(&self) -> controllers::Profile {
+        controllers::Profile::from_name(&self.limits).unwrap_or(controllers::Profile::Panda)
+    }
+}
+
+fn default_limits() -> String {
+    "panda".into()
+}
+
+/// What the runtime checks besides joint limits (read by `r2g-control`; validated here too).
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SafetySpec {
+    /// Workspace box of the TCP in the robot base frame, m (both or neither).
+    pub workspace_min_m: Option<[f64; 3]>,
+    pub workspace_max_m: Option<[f64; 3]>,
+    /// Clearance required between bodies and to obstacles, m.
+    pub margin_m: Option<f64>,
 }
 
 fn default_tcp() -> String {
@@ -179,6 +206,24 @@ impl Scene {
         }
         if !finite(&self.robot.initial_joints_rad) || !finite(&self.robot.base_position_m) {
             return Err("robot values must be finite numbers".into());
+        }
+        if controllers::Profile::from_name(&self.robot.limits).is_none() {
+            return Err(format!("robot limits = \"{}\" is unknown: use \"panda\" or \"fr3\"", self.robot.limits));
+        }
+        if let Some(s) = &self.safety {
+            if s.workspace_min_m.is_some() != s.workspace_max_m.is_some() {
+                return Err("[safety] needs both workspace_min_m and workspace_max_m, or neither".into());
+            }
+            if let (Some(lo), Some(hi)) = (s.workspace_min_m, s.workspace_max_m) {
+                if !(finite(&lo) && finite(&hi) && (0..3).all(|k| lo[k] < hi[k])) {
+                    return Err(
+                        "[safety] workspace_min_m must be finite and below workspace_max_m on every axis".into()
+                    );
+                }
+            }
+            if s.margin_m.is_some_and(|m| !(m.is_finite() && (0.0..0.1).contains(&m))) {
+                return Err("[safety] margin_m must be in [0, 0.1) m".into());
+            }
         }
         let mut names = std::collections::HashSet::new();
         if self.cameras.len() > ipc_schema::MAX_CAMERAS {

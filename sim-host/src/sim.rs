@@ -63,8 +63,8 @@ impl Sim {
         let scene = Scene::load(scene_path)?;
         let urdf = std::fs::read_to_string(&scene.robot.urdf)
             .map_err(|source| crate::scene::SceneError::Urdf { path: scene.robot.urdf.clone(), source })?;
-        let robot = RobotModel::from_urdf_str(&urdf, &scene.robot.tcp_link, controllers::Profile::Panda)?;
-        let xml = mjcf::compile(&scene, &urdf, &robot.joint_names, &robot.finger_joint)?;
+        let robot = RobotModel::from_urdf_str(&urdf, &scene.robot.tcp_link, scene.robot.profile())?;
+        let xml = mjcf::compile(&scene, &urdf, &robot)?;
         let model = Arc::new(MjModel::from_xml_string(&xml).map_err(|e| SimError::Compile(format!("{e}")))?);
         let m: &MjModel = &model;
         let joint = |n: &str| id(m, MjtObjBase::mjOBJ_JOINT, n);

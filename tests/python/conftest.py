@@ -17,12 +17,12 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 
 class Instance:
-    def __init__(self, name: str, mode: str) -> None:
+    def __init__(self, name: str, mode: str, gym: str = "pick_block_plate") -> None:
         if not R2G.is_file():
             raise RuntimeError(f"{R2G} missing: run `make build` first")
         self.name = name
         self.proc = subprocess.Popen(
-            [str(R2G), "up", "pick_block_plate", "--instance", name, "--mode", mode, "--render-hz", "10"],
+            [str(R2G), "up", gym, "--instance", name, "--mode", mode, "--render-hz", "10"],
             stdout=subprocess.PIPE,
             stdin=subprocess.DEVNULL,
             text=True,
@@ -44,8 +44,8 @@ class Instance:
                 self.proc.wait()
 
 
-def _instance(mode: str, tag: str) -> Iterator[Instance]:
-    inst = Instance(f"py{os.getpid()}{tag}", mode)
+def _instance(mode: str, tag: str, gym: str = "pick_block_plate") -> Iterator[Instance]:
+    inst = Instance(f"py{os.getpid()}{tag}", mode, gym)
     previous = os.environ.get("R2G_INSTANCE")
     os.environ["R2G_INSTANCE"] = inst.name
     try:
@@ -66,3 +66,15 @@ def wall() -> Iterator[Instance]:
 @pytest.fixture(scope="module")
 def lockstep() -> Iterator[Instance]:
     yield from _instance("lockstep", "l")
+
+
+@pytest.fixture(scope="module")
+def fr3(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Instance]:
+    """pick_block_plate with FR3 limits and a workspace that ends 10 cm above the table."""
+    text = (ROOT / "gyms" / "pick_block_plate" / "scene.toml").read_text()
+    urdf = ROOT / "robots" / "panda" / "panda.urdf"
+    text = text.replace('urdf = "../../robots/panda/panda.urdf"', f'urdf = "{urdf}"\nlimits = "fr3"')
+    text += "\n[safety]\nworkspace_min_m = [-0.2, -0.6, 0.1]\nworkspace_max_m = [1.1, 0.6, 1.0]\n"
+    scene = tmp_path_factory.mktemp("fr3") / "scene.toml"
+    scene.write_text(text)
+    yield from _instance("lockstep", "f", str(scene))

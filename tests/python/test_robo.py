@@ -197,3 +197,21 @@ def test_a_missing_instance_is_a_connection_error_with_the_fix() -> None:
     finally:
         if previous is not None:
             os.environ["R2G_INSTANCE"] = previous
+
+
+def test_an_fr3_scene_uses_fr3_limits_and_its_own_workspace(fr3) -> None:
+    assert robo.reset() == 1
+    here = robo.get_state([])["joint"]
+    # Joint 6 at 0.3 rad is inside the Panda's range but below the FR3's 0.4398 rad.
+    low6 = here[:5] + [0.3] + here[6:]
+    assert robo.post_actions({"actions": [low6 + [-1.0]], "type": "joint", "freq": ""}) == 0
+    assert "joint 6" in feedback()["reason"], feedback()
+    # 5 cm above the table is fine for the table, not for this scene's workspace.
+    ee = robo.get_state([])["ee_pose"]
+    low = [ee[0], ee[1], 0.05] + ee[3:]
+    assert robo.post_actions({"actions": [low + [-1.0]], "type": "ee_pose", "freq": ""}) == 0
+    assert "workspace" in feedback()["reason"], feedback()
+    # Motion within the FR3 limits runs in the simulator.
+    goal = here[:5] + [1.2] + here[6:]
+    assert robo.post_actions({"actions": [goal + [-1.0]], "type": "joint", "freq": ""}) == 1, feedback()
+    assert abs(robo.get_state([])["joint"][5] - 1.2) < 0.01

@@ -14,6 +14,11 @@ pub fn bin_dir() -> PathBuf {
     deps.parent().expect("profile folder").to_path_buf()
 }
 
+/// The checkout this crate lives in.
+pub fn root() -> PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
 pub fn r2g() -> PathBuf {
     let p = bin_dir().join("r2g");
     assert!(p.is_file(), "{} missing: build the workspace first (make build)", p.display());
