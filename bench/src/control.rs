@@ -182,6 +182,33 @@ pub fn tick_compute(ticks: u64) -> anyhow::Result<serde_json::Value> {
         all.merge(&hist);
         results.push((ct.name(), hist, accept));
     }
+    // The heaviest chunks acceptance meets: 20 waypoints swinging joint 1 by ±0.4 rad, and 20
+    // swinging the TCP by ±0.2 m sideways (path checks and IK samples at their budget).
+    let mut long = Vec::new();
+    for ct in [ControlType::Joint, ControlType::EePose] {
+        let mut h = Histogram::new();
+        let start = robot.kin.fk(&HOME, robot.kin.tcp);
+        let (p, aa) = (start.translation.vector, start.rotation.scaled_axis());
+        req.control_type = ct as u32;
+        req.len = 20;
+        req.freq_hz = 0.0;
+        for k in 0..20 {
+            let sgn = if k % 2 == 0 { 1.0 } else { -1.0 };
+            req.actions[k] = match ct {
+                ControlType::Joint => [HOME[0] + 0.4 * sgn, HOME[1], HOME[2], HOME[3], HOME[4], HOME[5], HOME[6], -1.0],
+                ControlType::EePose => [p.x, p.y + 0.2 * sgn, p.z, aa.x, aa.y, aa.z, 0.0, -1.0],
+            };
+        }
+        for _ in 0..20 {
+            let mut ctl = controller(&robot, &safety, LimiterConfig::default());
+            let state = start_state(&robot);
+            let t0 = Instant::now();
+            let (reply, _) = ctl.request(&req, &state);
+            h.record(t0.elapsed().as_nanos() as u64);
+            anyhow::ensure!(reply.is_none(), "the long {} chunk was refused", ct.name());
+        }
+        long.push((ct.name(), h));
+    }
     let counted = runtime::alloc_count::counting_active();
     let row = |name: &str, h: &Histogram| {
         vec![
@@ -196,6 +223,9 @@ pub fn tick_compute(ticks: u64) -> anyhow::Result<serde_json::Value> {
     for (n, h, a) in &results {
         rows.push(row(&format!("tick, {n} chunks"), h));
         rows.push(row(&format!("accepting a {n} chunk"), a));
+    }
+    for (n, h) in &long {
+        rows.push(row(&format!("accepting a long {n} chunk"), h));
     }
     rows.push(row("tick, all", &all));
     rows.push(row("FK + Jacobian only", fk_hist));
@@ -216,6 +246,8 @@ pub fn tick_compute(ticks: u64) -> anyhow::Result<serde_json::Value> {
         "ee_pose": per(&results[1].1),
         "accept_joint_chunk": per(&results[0].2),
         "accept_ee_pose_chunk": per(&results[1].2),
+        "accept_long_joint_chunk": per(&long[0].1),
+        "accept_long_ee_pose_chunk": per(&long[1].1),
         "allocations_per_tick": if counted { json!(allocs as f64 / ticks as f64) } else { json!(null) },
         "braking_ticks": braking,
         "baseline_fk_jacobian": per(fk_hist),

@@ -124,6 +124,17 @@ impl ChunkPlan {
         let freq = check_shape(actions.len(), freq_hz, cfg)?;
         let mut plan = Self::hold(start_q, 0.0);
         plan.len = actions.len();
+        // Path-check spacing: 0.02 rad, coarser when the chunk travels far (bounded work).
+        let mut travel = 0.0;
+        let mut last = start_q;
+        for a in actions {
+            let q: [f64; N] = std::array::from_fn(|j| a[j]);
+            if q.iter().all(|v| v.is_finite()) {
+                travel += (0..N).map(|j| (q[j] - last[j]).abs()).fold(0.0, f64::max);
+                last = q;
+            }
+        }
+        let spacing = travel / crate::safety::MAX_PATH_CHECKS as f64;
         let mut prev = start_q;
         let mut t = 0.0;
         for (w, a) in actions.iter().enumerate() {
@@ -137,10 +148,12 @@ impl ChunkPlan {
                 }
                 q[j] = a[j];
             }
+            // Timing first: an overlong chunk is refused before any path is checked.
+            let seg = plan.segment_s(w, &prev, &q, freq, robot, cfg)?;
             if let Some(s) = safety {
-                s.check_path(&prev, &q).map_err(|v| unsafe_at(w, v))?;
+                s.check_path(&prev, &q, spacing).map_err(|v| unsafe_at(w, v))?;
             }
-            t += plan.segment_s(w, &prev, &q, freq, robot, cfg)?;
+            t += seg;
             plan.waypoints[w] = Waypoint { q_rad: q, gripper: a[N] };
             plan.ends_s[w] = t;
             prev = q;

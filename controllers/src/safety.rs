@@ -10,6 +10,9 @@ use crate::N;
 
 /// Joint-space spacing at which the path between two waypoints is checked, rad.
 pub const PATH_STEP_RAD: f64 = 0.02;
+/// Most configurations checked along one chunk's path: long chunks get a coarser spacing, so
+/// that accepting one costs at most about a millisecond.
+pub const MAX_PATH_CHECKS: usize = 512;
 
 #[derive(Debug, Clone)]
 pub struct SafetyChecks {
@@ -82,10 +85,10 @@ impl SafetyChecks {
     }
 
     /// Checks the straight joint-space path from `a` to `b` (both ends included) at
-    /// [`PATH_STEP_RAD`] spacing.
-    pub fn check_path(&self, a: &[f64; N], b: &[f64; N]) -> Result<(), Violation<'_>> {
+    /// `spacing_rad` of the largest joint's travel (never finer than [`PATH_STEP_RAD`]).
+    pub fn check_path(&self, a: &[f64; N], b: &[f64; N], spacing_rad: f64) -> Result<(), Violation<'_>> {
         let span = (0..N).map(|j| (b[j] - a[j]).abs()).fold(0.0, f64::max);
-        let steps = ((span / PATH_STEP_RAD).ceil() as usize).clamp(1, 10_000);
+        let steps = ((span / spacing_rad.max(PATH_STEP_RAD)).ceil() as usize).clamp(1, MAX_PATH_CHECKS);
         for k in 0..=steps {
             let s = k as f64 / steps as f64;
             let q: [f64; N] = std::array::from_fn(|j| a[j] + s * (b[j] - a[j]));
