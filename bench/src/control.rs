@@ -5,6 +5,7 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 use anyhow::Context;
+use controllers::ik::SplitMix64;
 use controllers::monitor::Monitor;
 use controllers::safety::SafetyChecks;
 use controllers::{LimiterConfig, RobotModel, N};
@@ -27,19 +28,18 @@ fn controller(robot: &RobotModel, safety: &SafetyChecks, cfg: LimiterConfig) -> 
     Controller::new(robot.clone(), cfg, DT_S).with_safety(safety.clone())
 }
 
-/// splitmix64: reproducible inputs without a dependency.
-pub struct Rng(pub u64);
+/// Reproducible inputs: the IK solver's SplitMix64, with the draws these benches need.
+pub struct Rng(SplitMix64);
 impl Rng {
+    pub fn new(seed: u64) -> Self {
+        Self(SplitMix64::new(seed))
+    }
     pub fn u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
+        self.0.next_u64()
     }
     /// Uniform in [0, 1).
     pub fn f(&mut self) -> f64 {
-        (self.u64() >> 11) as f64 / (1u64 << 53) as f64
+        self.0.next_f64()
     }
     pub fn below(&mut self, n: u64) -> u64 {
         self.u64() % n.max(1)
@@ -130,7 +130,7 @@ fn valid_ee_chunk(rng: &mut Rng, robot: &RobotModel, from: [f64; N], req: &mut R
 /// while it follows a stream of valid chunks, beside FK + Jacobian alone as a yardstick.
 pub fn tick_compute(ticks: u64) -> anyhow::Result<serde_json::Value> {
     let (robot, safety) = panda()?;
-    let mut rng = Rng(7);
+    let mut rng = Rng::new(7);
     let mut req = empty_request(0, 1);
     let fk_hist = &mut Histogram::new();
     let mut results = Vec::new();
@@ -322,7 +322,7 @@ pub fn limiter_fuzz(chunks: u64, seed: u64) -> anyhow::Result<serde_json::Value>
     let mut state = start_state(&robot);
     let mut monitor = Monitor::new(DT_S);
     monitor.start_at(&state.q_rad, state.finger_m, &robot);
-    let mut rng = Rng(seed);
+    let mut rng = Rng::new(seed);
     let mut req = empty_request(0, 1);
     let mut reasons: BTreeMap<&'static str, u64> = BTreeMap::new();
     let (mut accepted, mut superseded, mut resets) = (0u64, 0u64, 0u64);
