@@ -9,7 +9,10 @@ use ipc_schema::process;
 use ipc_schema::Mode;
 use runtime::launch::{self, Instance, UpOptions};
 
+mod author;
+mod episode;
 mod kin;
+mod sim_bench;
 
 /// Counts allocations inside ticks, so `bench tick-compute` can report them.
 #[global_allocator]
@@ -50,6 +53,24 @@ enum Cmd {
     },
     /// List the gyms of the pack, one name per line.
     Gyms,
+    /// Replay a gym's demonstration in lockstep (controller at 1 kHz, one physics step per
+    /// tick), then judge the native trace. Ends with the evaluator's JSON line; exit status 0
+    /// on success, 1 when the task failed.
+    Replay {
+        /// Gym name, gym folder, or scene file.
+        gym: String,
+        /// Augmentation seed (0: the scene as written).
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Post no actions at all: the evaluator must then report failure.
+        #[arg(long)]
+        do_nothing: bool,
+        /// Folder for the trace and the evaluation (default: runs/replay).
+        #[arg(long, default_value = "runs/replay")]
+        out: std::path::PathBuf,
+    },
+    /// Write a gym's demonstration (demo.csv) from its TCP keyframes (keyframes.toml) with IK.
+    AuthorDemo { gym: String },
     /// Kinematics over JSON lines: reads one request per stdin line, answers one line each.
     Kin {
         #[command(subcommand)]
@@ -135,6 +156,16 @@ enum BenchCmd {
         #[arg(long, default_value_t = 10_000)]
         count: usize,
     },
+    /// Physics in lockstep with the 1 kHz controller: real-time factor per gym while replaying
+    /// its demonstration, beside MuJoCo stepping alone; and render time per 640×480 frame,
+    /// RGB and RGB-D.
+    Sim {
+        /// Only these gyms (default: all).
+        gyms: Vec<String>,
+        /// Frames rendered per camera and mode.
+        #[arg(long, default_value_t = 30)]
+        frames: usize,
+    },
     /// The receiving process of `r2g bench ipc` (started by it).
     #[command(hide = true)]
     IpcPeer {
@@ -155,6 +186,9 @@ fn main() {
     let r = match cli.command {
         Cmd::Up { gym, mode, instance, render_hz } => up(&gym, mode, &instance, render_hz),
         Cmd::Gyms => gyms(),
+        Cmd::Replay { gym, seed, do_nothing, out } => replay(&gym, seed, do_nothing, &out),
+        Cmd::AuthorDemo { gym } => author::run(&gym).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => sim_bench::run(&gyms, frames).map(|_| 0),
         Cmd::Kin { which: KinCmd::Fk { args } } => kin::run(false, &args.robot, &args.tcp, args.frame.as_deref()),
         Cmd::Kin { which: KinCmd::Ik { args } } => kin::run(true, &args.robot, &args.tcp, args.frame.as_deref()),
         Cmd::Bench { which: BenchCmd::Ik { targets, count } } => bench::ik::run(targets.as_deref(), count).map(|_| 0),
@@ -196,6 +230,22 @@ fn gyms() -> anyhow::Result<i32> {
         println!("{n}");
     }
     Ok(0)
+}
+
+fn replay(gym: &str, seed: u64, do_nothing: bool, out: &std::path::Path) -> anyhow::Result<i32> {
+    let scene = launch::resolve_scene(gym)?;
+    let r = episode::replay(&scene, seed, do_nothing, Some(out))?;
+    for (row, why) in &r.failures {
+        eprintln!("r2g replay: chunk from row {row} did not execute: {why}");
+    }
+    for (name, c) in &r.evaluation.checks {
+        eprintln!("  {} {name}: {}", if c.pass { "pass" } else { "FAIL" }, c.value);
+    }
+    if let Some(p) = &r.trace_path {
+        eprintln!("trace: {}", p.display());
+    }
+    println!("{}", serde_json::to_string(&r.evaluation)?);
+    Ok(if r.evaluation.success { 0 } else { 1 })
 }
 
 fn up(gym: &str, mode: ModeArg, instance: &str, render_hz: f64) -> anyhow::Result<i32> {

@@ -4,6 +4,7 @@ pub mod mjcf;
 pub mod render;
 pub mod scene;
 pub mod sim;
+pub mod trace;
 
 pub use scene::Scene;
 pub use sim::{Sim, SimError};

@@ -9,11 +9,17 @@
 use std::collections::HashMap;
 use std::fmt::Write;
 
-use crate::scene::{CameraSpec, Scene, Shape};
+use crate::scene::{part_volume, CameraSpec, JointKind, PartSpec, Role, Scene, Shape};
 
 /// Names the sim-host looks up in the compiled model.
 pub const TCP_SITE: &str = "r2g_tcp";
 pub const GRIPPER_ACTUATOR: &str = "r2g_gripper";
+/// A fixture's moving body is named `<fixture><MOVING_SUFFIX>`, its joint `<fixture><JOINT_SUFFIX>`.
+pub const MOVING_SUFFIX: &str = "__moving";
+pub const JOINT_SUFFIX: &str = "__joint";
+/// Geom groups: drawn visuals and hidden collision shapes.
+const VISUAL_GROUP: u32 = 2;
+const COLLISION_GROUP: u32 = 3;
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -41,6 +47,76 @@ fn servo_gains(effort: f64) -> (f64, f64) {
 
 fn f3(v: [f64; 3]) -> String {
     format!("{} {} {}", v[0], v[1], v[2])
+}
+
+fn f4(v: [f64; 4]) -> String {
+    format!("{} {} {} {}", v[0], v[1], v[2], v[3])
+}
+
+/// Writes the geoms of an object's or fixture's parts: each part becomes a drawn visual geom
+/// that never collides and/or a hidden collision geom (group 3) that always does (objects with
+/// fingers, containers, supports and each other: contype/conaffinity 1 and 3, never disabled).
+/// `mass` is spread over the collision parts by volume (meshes share by their bounding guess:
+/// an equal part); None leaves fixtures static.
+#[allow(clippy::too_many_arguments)]
+fn parts(
+    o: &mut String,
+    parts: &[PartSpec],
+    owner: &str,
+    rgba: [f64; 4],
+    friction: f64,
+    mass: Option<f64>,
+    indent: &str,
+    meshes: &mut Vec<(String, std::path::PathBuf, [f64; 3])>,
+) {
+    let colliding: Vec<&PartSpec> = parts.iter().filter(|p| p.role != Role::Visual).collect();
+    let known: f64 = colliding.iter().filter_map(|p| part_volume(p)).sum();
+    let unknown = colliding.iter().filter(|p| part_volume(p).is_none()).count();
+    // Meshes count as the average primitive (or 1 each when all are meshes).
+    let mesh_share = if unknown == 0 {
+        0.0
+    } else if known > 0.0 {
+        known / colliding.len().max(1) as f64
+    } else {
+        1.0
+    };
+    let total = known + mesh_share * unknown as f64;
+    for (k, p) in parts.iter().enumerate() {
+        let (t, size) = match p.shape {
+            Shape::Box => ("box", p.size_m.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(" ")),
+            Shape::Cylinder => ("cylinder", format!("{} {}", p.size_m[0], p.size_m[1])),
+            Shape::Capsule => ("capsule", format!("{} {}", p.size_m[0], p.size_m[1])),
+            Shape::Sphere => ("sphere", p.size_m[0].to_string()),
+            Shape::Mesh => ("mesh", String::new()),
+        };
+        let shape = if p.shape == Shape::Mesh {
+            let name = format!("{owner}_mesh{k}");
+            meshes.push((name.clone(), p.mesh.clone().unwrap_or_default(), p.mesh_scale));
+            format!("type=\"mesh\" mesh=\"{name}\"")
+        } else {
+            format!("type=\"{t}\" size=\"{size}\"")
+        };
+        let c = p.rgba.unwrap_or(rgba);
+        let at = format!("pos=\"{}\" quat=\"{}\"", f3(p.position_m), f4(p.quat_wxyz));
+        if p.role != Role::Collision {
+            writeln!(
+                o,
+                "{indent}<geom {shape} {at} rgba=\"{}\" contype=\"0\" conaffinity=\"0\" group=\"{VISUAL_GROUP}\" mass=\"0\"/>",
+                f4(c)
+            )
+            .ok();
+        }
+        if p.role != Role::Visual {
+            let share = part_volume(p).unwrap_or(mesh_share);
+            let m = mass.map(|m| m * share / total.max(1e-12)).unwrap_or(0.0);
+            writeln!(
+                o,
+                "{indent}<geom name=\"{owner}_c{k}\" {shape} {at} mass=\"{m}\" friction=\"{friction} 0.01 0.0002\" rgba=\"{} 0.5\" contype=\"1\" conaffinity=\"3\" condim=\"4\" solref=\"0.004 1\" solimp=\"0.95 0.99 0.001\" group=\"{COLLISION_GROUP}\"/>",
+                f3([c[0], c[1], c[2]])
+            )
+            .ok();
+        }
+    }
 }
 
 fn v3(v: &urdf_rs::Vec3) -> [f64; 3] {
@@ -124,7 +200,9 @@ impl Writer<'_> {
             )
             .ok();
         }
-        for c in &link.collision {
+        // Collision shapes named `*_envelope` wrap parts the simulator models in detail (the
+        // fingers): they serve the runtime's self-collision checks only and never touch objects.
+        for c in link.collision.iter().filter(|c| !c.name.as_deref().is_some_and(|n| n.ends_with("_envelope"))) {
             let (t, size) = shape(&c.geometry)?;
             // Robot geoms collide with the scene (conaffinity 1) but not with each other: the
             // runtime checks self-collision on commands before they ever reach the simulator.
@@ -278,9 +356,24 @@ pub fn compile(scene: &Scene, urdf_xml: &str, model: &controllers::RobotModel) -
     writeln!(o, "  <visual><global offwidth=\"{max_w}\" offheight=\"{max_h}\"/><quality shadowsize=\"1024\"/><headlight ambient=\"0.35 0.35 0.35\" diffuse=\"0.5 0.5 0.5\"/></visual>").ok();
     writeln!(o, "  <asset>\n    <texture name=\"sky\" type=\"skybox\" builtin=\"gradient\" rgb1=\"0.75 0.82 0.9\" rgb2=\"0.25 0.3 0.38\" width=\"256\" height=\"256\"/>").ok();
     writeln!(o, "    <texture name=\"floor\" type=\"2d\" builtin=\"checker\" rgb1=\"0.42 0.44 0.46\" rgb2=\"0.32 0.34 0.36\" width=\"256\" height=\"256\"/>").ok();
-    writeln!(o, "    <material name=\"floor\" texture=\"floor\" texrepeat=\"6 6\"/>\n  </asset>").ok();
+    writeln!(o, "    <material name=\"floor\" texture=\"floor\" texrepeat=\"6 6\"/>\n{MESH_PLACEHOLDER}  </asset>")
+        .ok();
     writeln!(o, "  <worldbody>").ok();
-    writeln!(o, "    <light name=\"key\" pos=\"0.4 -0.6 2.0\" dir=\"-0.1 0.3 -1\" diffuse=\"0.6 0.6 0.6\" castshadow=\"true\"/>").ok();
+    if scene.lights.is_empty() {
+        writeln!(o, "    <light name=\"key\" pos=\"0.4 -0.6 2.0\" dir=\"-0.1 0.3 -1\" diffuse=\"0.6 0.6 0.6\" castshadow=\"true\"/>").ok();
+    }
+    for (i, l) in scene.lights.iter().enumerate() {
+        writeln!(
+            o,
+            "    <light name=\"light{i}\" pos=\"{}\" dir=\"{}\" diffuse=\"{}\" castshadow=\"{}\"/>",
+            f3(l.position_m),
+            f3(l.direction),
+            f3(l.diffuse),
+            l.cast_shadow
+        )
+        .ok();
+    }
+    let mut meshes = Vec::new();
     let floor_z = scene.table.as_ref().map(|t| t.top_center_m[2] - 0.75).unwrap_or(0.0);
     writeln!(o, "    <geom name=\"floor\" type=\"plane\" size=\"3 3 0.1\" pos=\"0 0 {floor_z}\" material=\"floor\" contype=\"1\" conaffinity=\"3\"/>").ok();
     if let Some(t) = &scene.table {
@@ -304,34 +397,45 @@ pub fn compile(scene: &Scene, urdf_xml: &str, model: &controllers::RobotModel) -
         .ok();
     }
     for ob in &scene.objects {
-        let (t, size) = match ob.shape {
-            Shape::Box => ("box", ob.size_m.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(" ")),
-            Shape::Cylinder => ("cylinder", format!("{} {}", ob.size_m[0], ob.size_m[1])),
-            Shape::Capsule => ("capsule", format!("{} {}", ob.size_m[0], ob.size_m[1])),
-            Shape::Sphere => ("sphere", ob.size_m[0].to_string()),
-        };
-        let q = ob.quat_wxyz;
-        let rgba = ob.rgba;
-        writeln!(
-            o,
-            "    <body name=\"{}\" pos=\"{}\" quat=\"{} {} {} {}\">",
-            ob.name,
-            f3(ob.position_m),
-            q[0],
-            q[1],
-            q[2],
-            q[3]
-        )
-        .ok();
+        writeln!(o, "    <body name=\"{}\" pos=\"{}\" quat=\"{}\">", ob.name, f3(ob.position_m), f4(ob.quat_wxyz)).ok();
         if ob.free {
             writeln!(o, "      <freejoint name=\"{}_free\"/>", ob.name).ok();
         }
-        writeln!(
-            o,
-            "      <geom type=\"{t}\" size=\"{size}\" mass=\"{}\" friction=\"{} 0.01 0.0002\" rgba=\"{} {} {} {}\" contype=\"1\" conaffinity=\"3\" condim=\"4\"/>",
-            ob.mass_kg, ob.friction, rgba[0], rgba[1], rgba[2], rgba[3]
-        )
-        .ok();
+        parts(o, &ob.all_parts(), &ob.name, ob.rgba, ob.friction, Some(ob.mass_kg), "      ", &mut meshes);
+        writeln!(o, "    </body>").ok();
+    }
+    for fx in &scene.fixtures {
+        writeln!(o, "    <body name=\"{}\" pos=\"{}\" quat=\"{}\">", fx.name, f3(fx.position_m), f4(fx.quat_wxyz)).ok();
+        parts(o, &fx.parts, &fx.name, fx.rgba, fx.friction, None, "      ", &mut meshes);
+        if let Some(j) = &fx.joint {
+            let kind = match j.kind {
+                JointKind::Slide => "slide",
+                JointKind::Hinge => "hinge",
+            };
+            let [lo, hi] = j.range();
+            writeln!(o, "      <body name=\"{}{MOVING_SUFFIX}\" pos=\"{}\">", fx.name, f3(j.anchor_m)).ok();
+            writeln!(
+                o,
+                "        <joint name=\"{}{JOINT_SUFFIX}\" type=\"{kind}\" axis=\"{}\" range=\"{lo} {hi}\" damping=\"{}\" frictionloss=\"{}\" limited=\"true\" ref=\"0\"/>",
+                fx.name,
+                f3(j.axis),
+                j.damping,
+                j.frictionloss
+            )
+            .ok();
+            let rgba = j.rgba.unwrap_or(fx.rgba);
+            parts(
+                o,
+                &j.parts,
+                &format!("{}{MOVING_SUFFIX}", fx.name),
+                rgba,
+                fx.friction,
+                Some(j.mass_kg),
+                "        ",
+                &mut meshes,
+            );
+            writeln!(o, "      </body>").ok();
+        }
         writeln!(o, "    </body>").ok();
     }
     let b = scene.robot.base_position_m;
@@ -340,6 +444,16 @@ pub fn compile(scene: &Scene, urdf_xml: &str, model: &controllers::RobotModel) -
     let o = &mut w.out;
     writeln!(o, "    </body>\n  </worldbody>").ok();
 
+    // The robot is bolted to the table: its base never collides with the world's geometry.
+    // Its first moving link only turns about the mount axis, and its collision shape (written
+    // for self-collision checks) reaches down into the mount, so it is excluded too.
+    writeln!(o, "  <contact>").ok();
+    let first: Vec<&str> =
+        robot.joints.iter().filter(|j| j.parent.link == root.name).map(|j| j.child.link.as_str()).collect();
+    for b in std::iter::once(root.name.as_str()).chain(first) {
+        writeln!(o, "    <exclude body1=\"world\" body2=\"{b}\"/>").ok();
+    }
+    writeln!(o, "  </contact>").ok();
     // The mimic joints of the gripper follow the driven finger.
     let mimics: Vec<&urdf_rs::Joint> =
         robot.joints.iter().filter(|j| j.mimic.as_ref().is_some_and(|m| m.joint == finger_joint)).collect();
@@ -375,5 +489,13 @@ pub fn compile(scene: &Scene, urdf_xml: &str, model: &controllers::RobotModel) -
         "    <position name=\"{GRIPPER_ACTUATOR}\" tendon=\"r2g_fingers\" kp=\"2000\" kv=\"40\" ctrlrange=\"0 {finger_max}\" forcerange=\"-70 70\"/>\n  </actuator>\n</mujoco>"
     )
     .ok();
-    Ok(w.out)
+    let assets: String = meshes
+        .iter()
+        .map(|(name, file, scale)| {
+            format!("    <mesh name=\"{name}\" file=\"{}\" scale=\"{}\"/>\n", file.display(), f3(*scale))
+        })
+        .collect();
+    Ok(w.out.replace(MESH_PLACEHOLDER, &assets))
 }
+
+const MESH_PLACEHOLDER: &str = "<!--r2g meshes-->\n";

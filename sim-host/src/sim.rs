@@ -11,6 +11,7 @@ use mujoco_rs::prelude::*;
 
 use crate::mjcf;
 use crate::scene::Scene;
+use crate::trace::{Sample, Trace};
 
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -39,6 +40,12 @@ pub struct Layout {
     pub tcp_site: usize,
     pub base_body: usize,
     pub cameras: Vec<(String, usize)>,
+    /// Per object: body id and the qpos address of its free joint (None when welded).
+    pub objects: Vec<(usize, Option<usize>)>,
+    /// Per fixture joint: fixture name, qpos address, and its start position (native units).
+    pub fixture_joints: Vec<(String, usize, f64)>,
+    /// Owner (index into [`Sim::owners`]) of every geom; u16::MAX for none.
+    pub geom_owner: Vec<u16>,
 }
 
 pub struct Sim {
@@ -52,6 +59,24 @@ pub struct Sim {
     home_finger: f64,
     /// Commands computed from states older than this are stale (sent before a reset landed).
     pub reset_state_seq: u64,
+    /// What can touch, for the trace: objects, fixtures, then table, robot, floor.
+    pub owners: Vec<String>,
+    /// Seed of the episode's augmentation (0: the scene exactly as written).
+    pub seed: u64,
+    steps: u64,
+}
+
+/// Physics steps between two trace samples at the default 1 ms timestep (10 ms of sim time).
+const TRACE_PERIOD_S: f64 = 0.01;
+
+/// SplitMix64: a small, fixed pseudo-random sequence for augmentation.
+fn splitmix(state: &mut u64) -> f64 {
+    *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^= z >> 31;
+    (z >> 11) as f64 / (1u64 << 53) as f64
 }
 
 fn id(model: &MjModel, kind: MjtObjBase, name: &str) -> Result<usize, SimError> {
@@ -78,6 +103,9 @@ impl Sim {
             tcp_site: id(m, MjtObjBase::mjOBJ_SITE, mjcf::TCP_SITE)?,
             base_body: 0,
             cameras: Vec::new(),
+            objects: Vec::new(),
+            fixture_joints: Vec::new(),
+            geom_owner: Vec::new(),
         };
         let f = m.ffi();
         // SAFETY: the address arrays hold njnt entries and the ids come from name lookups.
@@ -109,10 +137,63 @@ impl Sim {
         for c in &scene.cameras {
             layout.cameras.push((c.name.clone(), id(m, MjtObjBase::mjOBJ_CAMERA, &c.name)?));
         }
+        for o in &scene.objects {
+            let body = id(m, MjtObjBase::mjOBJ_BODY, &o.name)?;
+            let free = if o.free { Some(qposadr[joint(&format!("{}_free", o.name))?] as usize) } else { None };
+            layout.objects.push((body, free));
+        }
+        for fx in scene.fixtures.iter() {
+            if let Some(j) = &fx.joint {
+                let jid = joint(&format!("{}{}", fx.name, mjcf::JOINT_SUFFIX))?;
+                layout.fixture_joints.push((fx.name.clone(), qposadr[jid] as usize, j.initial_native()));
+            }
+        }
+        // Owners: every body belongs to the top-level body under the world it hangs from.
+        let mut owners: Vec<String> = scene.objects.iter().map(|o| o.name.clone()).collect();
+        owners.extend(scene.fixtures.iter().map(|x| x.name.clone()));
+        owners.extend(["table", "robot", "floor"].map(String::from));
+        let owner_of_name = |n: &str| owners.iter().position(|o| o == n).map(|i| i as u16);
+        // SAFETY: body_parentid holds nbody entries, geom_bodyid ngeom; names come from the model.
+        let (parent, geom_body) = unsafe {
+            (
+                std::slice::from_raw_parts(f.body_parentid, f.nbody as usize),
+                std::slice::from_raw_parts(f.geom_bodyid, f.ngeom as usize),
+            )
+        };
+        let robot_owner = owner_of_name("robot").unwrap_or(u16::MAX);
+        for (g, &b) in geom_body.iter().enumerate() {
+            let mut top = b as usize;
+            while top != 0 && parent[top] != 0 {
+                top = parent[top] as usize;
+            }
+            let owner = if top == 0 {
+                let name = m.id_to_name(MjtObjBase::mjOBJ_GEOM, g).unwrap_or_default();
+                owner_of_name(&name).unwrap_or(u16::MAX)
+            } else if top == layout.base_body {
+                robot_owner
+            } else {
+                let name = m.id_to_name(MjtObjBase::mjOBJ_BODY, top).unwrap_or_default();
+                owner_of_name(&name).unwrap_or(u16::MAX)
+            };
+            layout.geom_owner.push(owner);
+        }
         let home_q = scene.robot.initial_joints_rad;
         let home_finger = robot.finger_from_gripper(scene.robot.initial_gripper);
         let data = MjData::new(model.clone());
-        let mut sim = Self { scene, robot, mjcf: xml, model, data, layout, home_q, home_finger, reset_state_seq: 0 };
+        let mut sim = Self {
+            scene,
+            robot,
+            mjcf: xml,
+            model,
+            data,
+            layout,
+            home_q,
+            home_finger,
+            reset_state_seq: 0,
+            owners,
+            seed: 0,
+            steps: 0,
+        };
         sim.reset();
         Ok(sim)
     }
@@ -132,7 +213,12 @@ impl Sim {
             for &a in &l.finger_qpos {
                 qpos[a] = finger;
             }
+            for (_, adr, initial) in &l.fixture_joints {
+                qpos[*adr] = *initial;
+            }
         }
+        self.augment();
+        self.steps = 0;
         let ctrl = self.ctrl_mut();
         for i in 0..N_JOINTS {
             ctrl[l.pos_act[i]] = home_q[i];
@@ -141,6 +227,122 @@ impl Sim {
         ctrl[l.grip_act] = finger;
         // SAFETY: the model/data pair of this Sim, taken afresh after the borrows above ended.
         unsafe { mj_forward(self.model.ffi(), self.data.ffi_mut()) };
+    }
+
+    /// Moves jittered objects by the episode seed (seed 0 leaves the scene as written).
+    fn augment(&mut self) {
+        if self.seed == 0 {
+            return;
+        }
+        let mut rng = self.seed;
+        let specs: Vec<(f64, f64)> = self.scene.objects.iter().map(|o| (o.jitter_xy_m, o.jitter_yaw_deg)).collect();
+        let objects = self.layout.objects.clone();
+        let qpos = self.qpos_mut();
+        for ((xy, yaw), (_, free)) in specs.into_iter().zip(objects) {
+            let (dx, dy, dyaw) = (
+                (2.0 * splitmix(&mut rng) - 1.0) * xy,
+                (2.0 * splitmix(&mut rng) - 1.0) * xy,
+                ((2.0 * splitmix(&mut rng) - 1.0) * yaw).to_radians(),
+            );
+            let Some(a) = free else { continue };
+            qpos[a] += dx;
+            qpos[a + 1] += dy;
+            // Turn about world z: q' = rz(dyaw) · q, with q = (w, x, y, z) at a+3.
+            let (s, c) = (0.5 * dyaw).sin_cos();
+            let q = [qpos[a + 3], qpos[a + 4], qpos[a + 5], qpos[a + 6]];
+            qpos[a + 3] = c * q[0] - s * q[3];
+            qpos[a + 4] = c * q[1] - s * q[2];
+            qpos[a + 5] = c * q[2] + s * q[1];
+            qpos[a + 6] = c * q[3] + s * q[0];
+        }
+    }
+
+    /// Samples the trace when it is due (every 10 ms of simulated time, and at step 0).
+    pub fn record(&self, trace: &mut Trace) {
+        let every = ((TRACE_PERIOD_S / self.scene.timestep_s).round() as u64).max(1);
+        if self.steps % every == 0 {
+            trace.samples.push(self.sample());
+        }
+    }
+
+    /// An empty trace naming what this scene records.
+    pub fn new_trace(&self) -> Trace {
+        Trace {
+            gym: self.scene.name.clone(),
+            seed: self.seed,
+            owners: self.owners.clone(),
+            objects: self.scene.objects.iter().map(|o| o.name.clone()).collect(),
+            joints: self.layout.fixture_joints.iter().map(|j| j.0.clone()).collect(),
+            finger_max_m: self.robot.finger_max_m,
+            samples: Vec::new(),
+        }
+    }
+
+    /// What the trace keeps of the present state.
+    pub fn sample(&self) -> Sample {
+        let d = self.data.ffi();
+        let l = &self.layout;
+        let qpos = self.qpos();
+        // SAFETY: xpos/xquat hold nbody entries, site_xpos nsite; contact holds ncon entries.
+        let (xpos, xquat, site, contacts) = unsafe {
+            let nb = self.model.ffi().nbody as usize;
+            (
+                std::slice::from_raw_parts(d.xpos, 3 * nb),
+                std::slice::from_raw_parts(d.xquat, 4 * nb),
+                std::slice::from_raw_parts(d.site_xpos.add(3 * l.tcp_site), 3),
+                std::slice::from_raw_parts(d.contact, d.ncon.max(0) as usize),
+            )
+        };
+        let objects = l
+            .objects
+            .iter()
+            .map(|&(b, _)| {
+                [
+                    xpos[3 * b],
+                    xpos[3 * b + 1],
+                    xpos[3 * b + 2],
+                    xquat[4 * b],
+                    xquat[4 * b + 1],
+                    xquat[4 * b + 2],
+                    xquat[4 * b + 3],
+                ]
+            })
+            .collect();
+        let joints = l
+            .fixture_joints
+            .iter()
+            .zip(self.scene.fixtures.iter().filter_map(|f| f.joint.as_ref()))
+            .map(|((_, adr, _), spec)| spec.to_spec_unit(qpos[*adr]))
+            .collect();
+        let mut pairs = Vec::new();
+        let (mut pen, mut pen_pair) = (0.0f64, [u16::MAX; 2]);
+        for c in contacts {
+            let owner = |g: i32| l.geom_owner.get(g as usize).copied().unwrap_or(u16::MAX);
+            let (a, b) = (owner(c.geom[0]), owner(c.geom[1]));
+            if a == b || a == u16::MAX || b == u16::MAX || c.exclude != 0 {
+                continue;
+            }
+            let pair = [a.min(b), a.max(b)];
+            if c.dist < 0.0 {
+                pairs.push(pair);
+            }
+            if -c.dist > pen {
+                pen = -c.dist;
+                pen_pair = pair;
+            }
+        }
+        pairs.sort_unstable();
+        pairs.dedup();
+        Sample {
+            t_s: d.time,
+            objects,
+            joints,
+            tcp_m: [site[0], site[1], site[2]],
+            finger_m: l.finger_qpos.first().map(|&a| qpos[a]).unwrap_or(0.0),
+            contacts: pairs,
+            penetration_m: pen,
+            penetration_pair: pen_pair,
+        }
     }
 
     fn slice_mut(&mut self, f: impl Fn(&mut mujoco_rs::mujoco_c::mjData) -> (*mut f64, usize)) -> &mut [f64] {
@@ -185,6 +387,7 @@ impl Sim {
             }
         }
         self.data.step();
+        self.steps += 1;
     }
 
     pub fn time_s(&self) -> f64 {

@@ -1,0 +1,186 @@
+//! Episodes in lockstep inside one process: the runtime's controller ticks at the scene's
+//! physics rate and the simulator steps once per command, exactly as `r2g-control` and
+//! `r2g-sim` do in lockstep mode, minus the shared memory. Used to replay a gym's
+//! demonstration, to judge it with the native evaluator, and to time physics.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use controllers::LimiterConfig;
+use ipc_schema::{ControlType, JointCommand, Reply, Request, RequestKind, Status, MAX_CHUNK, WAYPOINT_LEN};
+use runtime::controller::Controller;
+use sim_host::trace::{evaluate, Evaluation, Trace};
+use sim_host::Sim;
+
+pub struct Episode {
+    pub sim: Sim,
+    pub ctl: Controller,
+    pub trace: Trace,
+    seq: u64,
+    last_cmd: u64,
+    next_request: u64,
+    /// Ticks run (one per physics step).
+    pub ticks: u64,
+}
+
+impl Episode {
+    /// Loads a scene and starts an episode from its initial state, augmented by `seed`.
+    pub fn new(scene: &Path, seed: u64) -> anyhow::Result<Self> {
+        let mut sim = Sim::load(scene).with_context(|| format!("loading scene {}", scene.display()))?;
+        sim.seed = seed;
+        sim.reset();
+        let (robot, safety) = runtime::scene_robot(scene)?;
+        let ctl = Controller::new(robot, LimiterConfig::default(), sim.scene.timestep_s).with_safety(safety);
+        let mut trace = sim.new_trace();
+        sim.record(&mut trace);
+        Ok(Self { sim, ctl, trace, seq: 1, last_cmd: 0, next_request: 1, ticks: 0 })
+    }
+
+    fn tick(&mut self) -> Option<Reply> {
+        let state = self.sim.measure(self.seq, self.last_cmd, 0);
+        let (cmd, reply): (JointCommand, Option<Reply>) = self.ctl.tick(&state);
+        self.last_cmd = cmd.seq;
+        self.sim.step(&cmd);
+        self.seq += 1;
+        self.ticks += 1;
+        self.sim.record(&mut self.trace);
+        reply
+    }
+
+    /// Posts one chunk and runs until it has executed or failed; returns the final reply.
+    pub fn run_chunk(&mut self, control: ControlType, actions: &[[f64; WAYPOINT_LEN]], freq_hz: f64) -> Reply {
+        let id = self.next_request;
+        self.next_request += 1;
+        let mut req = Request {
+            id,
+            client: 1,
+            kind: RequestKind::Chunk as u32,
+            control_type: control as u32,
+            len: actions.len().min(MAX_CHUNK) as u32,
+            _pad: 0,
+            freq_hz,
+            actions: [[0.0; WAYPOINT_LEN]; MAX_CHUNK],
+        };
+        for (dst, src) in req.actions.iter_mut().zip(actions) {
+            *dst = *src;
+        }
+        let state = self.sim.measure(self.seq, self.last_cmd, 0);
+        let (reply, _) = self.ctl.request(&req, &state);
+        if let Some(r) = reply {
+            if r.status != Status::Accepted as u32 {
+                return r;
+            }
+        }
+        loop {
+            if let Some(r) = self.tick() {
+                if r.id == id && r.status != Status::Accepted as u32 {
+                    return r;
+                }
+            }
+        }
+    }
+
+    /// Lets physics run on with the arm holding, for `seconds` of simulated time.
+    pub fn hold(&mut self, seconds: f64) {
+        let n = (seconds / self.sim.scene.timestep_s).round() as u64;
+        for _ in 0..n {
+            self.tick();
+        }
+    }
+
+    pub fn evaluate(&self) -> Evaluation {
+        evaluate(&self.sim.scene, &self.trace)
+    }
+}
+
+/// Reads a demonstration: CSV rows of q1..q7 (rad) and the gripper (−1 open … +1 closed); a
+/// first line that is not numbers is a header.
+pub fn read_demo(path: &Path) -> anyhow::Result<Vec<[f64; WAYPOINT_LEN]>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading demonstration {}", path.display()))?;
+    let mut rows = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let cells: Vec<&str> = line.split(',').map(str::trim).collect();
+        let parsed: Result<Vec<f64>, _> = cells.iter().map(|c| c.parse::<f64>()).collect();
+        match parsed {
+            Err(_) if rows.is_empty() && i == 0 => continue,
+            Err(_) => bail!("{}: line {}: not a row of numbers", path.display(), i + 1),
+            Ok(v) if v.len() != WAYPOINT_LEN || !v.iter().all(|x| x.is_finite()) => {
+                bail!(
+                    "{}: line {}: expected {WAYPOINT_LEN} finite numbers (q1..q7, gripper), got {}",
+                    path.display(),
+                    i + 1,
+                    v.len()
+                )
+            }
+            Ok(v) => {
+                let mut row = [0.0; WAYPOINT_LEN];
+                row.copy_from_slice(&v);
+                rows.push(row);
+            }
+        }
+    }
+    if rows.is_empty() {
+        bail!("{}: the demonstration has no rows", path.display());
+    }
+    Ok(rows)
+}
+
+/// Writes a demonstration in the format [`read_demo`] reads.
+pub fn write_demo(path: &Path, rows: &[[f64; WAYPOINT_LEN]]) -> anyhow::Result<()> {
+    let mut out = String::from("q1,q2,q3,q4,q5,q6,q7,gripper\n");
+    for r in rows {
+        out.push_str(&r.iter().map(|v| format!("{v:.6}")).collect::<Vec<_>>().join(","));
+        out.push('\n');
+    }
+    std::fs::write(path, out).with_context(|| format!("writing {}", path.display()))
+}
+
+/// How a replay went.
+pub struct Replay {
+    pub evaluation: Evaluation,
+    /// Chunks that did not execute: (first row, reply reason).
+    pub failures: Vec<(usize, String)>,
+    pub trace_path: Option<PathBuf>,
+}
+
+/// Replays a scene's demonstration (or nothing, with `do_nothing`) in lockstep, lets physics
+/// settle, and judges the trace. Chunks of at most 256 rows run one after the other.
+pub fn replay(scene: &Path, seed: u64, do_nothing: bool, out: Option<&Path>) -> anyhow::Result<Replay> {
+    let mut ep = Episode::new(scene, seed)?;
+    let mut failures = Vec::new();
+    if !do_nothing {
+        let demo = ep
+            .sim
+            .scene
+            .task
+            .demonstration
+            .clone()
+            .with_context(|| format!("scene {} has no task.demonstration", scene.display()))?;
+        let rows = read_demo(&demo)?;
+        let hz = ep.sim.scene.task.demonstration_hz;
+        for (k, chunk) in rows.chunks(MAX_CHUNK).enumerate() {
+            let r = ep.run_chunk(ControlType::Joint, chunk, hz);
+            if r.status != Status::Executed as u32 {
+                failures.push((k * MAX_CHUNK, r.reason_str().to_string()));
+            }
+        }
+    }
+    ep.hold(ep.sim.scene.task.settle_s.max(if do_nothing { 2.0 } else { 0.0 }));
+    let evaluation = ep.evaluate();
+    let trace_path = match out {
+        Some(dir) => {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            let p = dir.join(format!("{}-seed{seed}.trace.json", ep.sim.scene.name));
+            std::fs::write(&p, serde_json::to_vec(&ep.trace)?).with_context(|| format!("writing {}", p.display()))?;
+            let e = dir.join(format!("{}-seed{seed}.eval.json", ep.sim.scene.name));
+            std::fs::write(&e, serde_json::to_vec_pretty(&evaluation)?)?;
+            Some(p)
+        }
+        None => None,
+    };
+    Ok(Replay { evaluation, failures, trace_path })
+}

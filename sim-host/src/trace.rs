@@ -1,0 +1,293 @@
+//! The native trace of an episode and the evaluator that judges it. Physics records what
+//! happened (object poses, fixture joints, TCP, gripper, contacts, penetration) every 10 ms of
+//! simulated time; after the episode the task's success rules are checked against that record
+//! alone. Nothing here ever crosses to the agent.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::scene::{Criterion, Scene};
+
+/// One sample of the trace.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Sample {
+    pub t_s: f64,
+    /// Per object: world position (3) and orientation quaternion w, x, y, z (4).
+    pub objects: Vec<[f64; 7]>,
+    /// Per fixture joint, in the scene's units (m for slides, degrees for hinges).
+    pub joints: Vec<f64>,
+    /// TCP position in the world.
+    pub tcp_m: [f64; 3],
+    /// Opening of one finger, m.
+    pub finger_m: f64,
+    /// Pairs of owners in contact (indices into [`Trace::owners`], smaller first), sorted.
+    pub contacts: Vec<[u16; 2]>,
+    /// Deepest penetration between different owners, m (0 when none).
+    pub penetration_m: f64,
+    pub penetration_pair: [u16; 2],
+}
+
+/// Everything recorded in one episode.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct Trace {
+    pub gym: String,
+    pub seed: u64,
+    /// Names of what can touch: the objects, the fixtures, then `table`, `robot`, `floor`.
+    pub owners: Vec<String>,
+    pub objects: Vec<String>,
+    /// Fixture names, one per recorded joint.
+    pub joints: Vec<String>,
+    pub finger_max_m: f64,
+    pub samples: Vec<Sample>,
+}
+
+impl Trace {
+    /// SHA-256 over every recorded number (little-endian f64) and contact pair, in order.
+    pub fn sha256(&self) -> String {
+        let mut h = Sha256::new();
+        for s in &self.samples {
+            h.update(s.t_s.to_le_bytes());
+            for o in &s.objects {
+                o.iter().for_each(|v| h.update(v.to_le_bytes()));
+            }
+            s.joints.iter().for_each(|v| h.update(v.to_le_bytes()));
+            s.tcp_m.iter().for_each(|v| h.update(v.to_le_bytes()));
+            h.update(s.finger_m.to_le_bytes());
+            for c in &s.contacts {
+                h.update(c[0].to_le_bytes());
+                h.update(c[1].to_le_bytes());
+            }
+            h.update([0xff]);
+            h.update(s.penetration_m.to_le_bytes());
+        }
+        hex(&h.finalize())
+    }
+
+    fn owner(&self, name: &str) -> Option<u16> {
+        self.owners.iter().position(|o| o == name).map(|i| i as u16)
+    }
+
+    fn object(&self, name: &str) -> Option<usize> {
+        self.objects.iter().position(|o| o == name)
+    }
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// The value and verdict of one check.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Check {
+    pub value: serde_json::Value,
+    pub pass: bool,
+}
+
+/// The evaluator's verdict on one episode.
+#[derive(Debug, Clone, Serialize)]
+pub struct Evaluation {
+    pub gym: String,
+    pub success: bool,
+    pub checks: BTreeMap<String, Check>,
+    pub trace_sha256: String,
+    pub criteria_sha256: String,
+    pub samples: usize,
+    pub sim_time_s: f64,
+}
+
+/// SHA-256 of the success rules as JSON: which rules judged an episode.
+pub fn criteria_sha256(scene: &Scene) -> String {
+    let json = serde_json::to_string(&(&scene.task.success, scene.task.max_penetration_m)).unwrap_or_default();
+    hex(&Sha256::digest(json.as_bytes()))
+}
+
+fn quat_rotate(q: [f64; 4], v: [f64; 3]) -> [f64; 3] {
+    // q = (w, x, y, z); v' = v + 2w(u×v) + 2u×(u×v)
+    let (w, u) = (q[0], [q[1], q[2], q[3]]);
+    let cross =
+        |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+    let c1 = cross(u, v);
+    let c2 = cross(u, c1);
+    [v[0] + 2.0 * (w * c1[0] + c2[0]), v[1] + 2.0 * (w * c1[1] + c2[1]), v[2] + 2.0 * (w * c1[2] + c2[2])]
+}
+
+fn quat_conj(q: [f64; 4]) -> [f64; 4] {
+    [q[0], -q[1], -q[2], -q[3]]
+}
+
+/// World poses of the fixtures (they never move), for cavity checks: name → (pos, quat wxyz).
+fn fixture_pose(scene: &Scene, name: &str) -> Option<([f64; 3], [f64; 4])> {
+    scene.fixtures.iter().find(|f| f.name == name).map(|f| (f.position_m, normalised(f.quat_wxyz)))
+}
+
+fn normalised(q: [f64; 4]) -> [f64; 4] {
+    let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
+    [q[0] / n, q[1] / n, q[2] / n, q[3] / n]
+}
+
+fn round(v: f64) -> f64 {
+    (v * 1e4).round() / 1e4
+}
+
+/// Judges a trace against the scene's success rules. Each rule is checked on the final sample
+/// (or, for `stable`, over the final window); penetration is checked over the whole episode.
+pub fn evaluate(scene: &Scene, trace: &Trace) -> Evaluation {
+    let mut checks = BTreeMap::new();
+    let last = trace.samples.last();
+    let fail = |why: &str| Check { value: serde_json::json!(why), pass: false };
+    for c in &scene.task.success {
+        let check = match last {
+            None => fail("the trace is empty"),
+            Some(s) => judge(scene, trace, s, c),
+        };
+        checks.insert(c.label(), check);
+    }
+    // Penetration beyond the limit must not persist for more than 0.1 s.
+    let limit = scene.task.max_penetration_m;
+    let (mut longest, mut run_start, mut deepest, mut pair) = (0.0f64, None::<f64>, 0.0f64, [0u16; 2]);
+    for s in &trace.samples {
+        if s.penetration_m > deepest {
+            deepest = s.penetration_m;
+            pair = s.penetration_pair;
+        }
+        if s.penetration_m > limit {
+            let start = *run_start.get_or_insert(s.t_s);
+            longest = longest.max(s.t_s - start);
+        } else {
+            run_start = None;
+        }
+    }
+    let name = |i: u16| trace.owners.get(i as usize).cloned().unwrap_or_default();
+    checks.insert(
+        "no_persistent_penetration".into(),
+        Check {
+            value: serde_json::json!({
+                "deepest_m": (deepest * 1e5).round() / 1e5,
+                "between": [name(pair[0]), name(pair[1])],
+                "longest_over_limit_s": round(longest),
+            }),
+            pass: longest <= 0.1,
+        },
+    );
+    let success = !scene.task.success.is_empty() && checks.values().all(|c| c.pass);
+    Evaluation {
+        gym: trace.gym.clone(),
+        success,
+        checks,
+        trace_sha256: trace.sha256(),
+        criteria_sha256: criteria_sha256(scene),
+        samples: trace.samples.len(),
+        sim_time_s: last.map(|s| s.t_s).unwrap_or(0.0),
+    }
+}
+
+fn judge(scene: &Scene, trace: &Trace, s: &Sample, c: &Criterion) -> Check {
+    let missing = |what: &str| Check { value: serde_json::json!(format!("{what} is not in the trace")), pass: false };
+    let touching = |a: u16, b: u16| s.contacts.contains(&[a.min(b), a.max(b)]);
+    match c {
+        Criterion::Inside { object, container, min_m, max_m } => {
+            let Some(i) = trace.object(object) else { return missing(object) };
+            let o = s.objects[i];
+            let p = [o[0], o[1], o[2]];
+            let (local, lo, hi) = match container {
+                Some(cn) => {
+                    let (frame, lo, hi) = if let Some(k) = trace.object(cn) {
+                        let c = s.objects[k];
+                        let spec = scene.objects.iter().find(|x| &x.name == cn);
+                        (
+                            ([c[0], c[1], c[2]], [c[3], c[4], c[5], c[6]]),
+                            spec.and_then(|x| x.cavity_min_m),
+                            spec.and_then(|x| x.cavity_max_m),
+                        )
+                    } else if let Some(f) = fixture_pose(scene, cn) {
+                        let spec = scene.fixtures.iter().find(|x| &x.name == cn);
+                        (f, spec.and_then(|x| x.cavity_min_m), spec.and_then(|x| x.cavity_max_m))
+                    } else {
+                        return missing(cn);
+                    };
+                    let d = [p[0] - frame.0[0], p[1] - frame.0[1], p[2] - frame.0[2]];
+                    (quat_rotate(quat_conj(frame.1), d), lo.unwrap_or([0.0; 3]), hi.unwrap_or([0.0; 3]))
+                }
+                None => (p, min_m.unwrap_or([0.0; 3]), max_m.unwrap_or([0.0; 3])),
+            };
+            let inside = (0..3).all(|k| local[k] >= lo[k] && local[k] <= hi[k]);
+            Check { value: serde_json::json!({"position_m": local.map(round)}), pass: inside }
+        }
+        Criterion::On { object, support } => {
+            let (Some(a), Some(b)) = (trace.owner(object), trace.owner(support)) else { return missing(support) };
+            Check { value: serde_json::json!(touching(a, b)), pass: touching(a, b) }
+        }
+        Criterion::TouchesOnly { object, others } => {
+            let Some(a) = trace.owner(object) else { return missing(object) };
+            let allowed: Vec<u16> = others.iter().filter_map(|n| trace.owner(n)).collect();
+            let touched: Vec<String> = s
+                .contacts
+                .iter()
+                .filter(|p| p[0] == a || p[1] == a)
+                .map(|p| if p[0] == a { p[1] } else { p[0] })
+                .map(|i| trace.owners[i as usize].clone())
+                .collect();
+            let ok = !touched.is_empty()
+                && s.contacts
+                    .iter()
+                    .filter(|p| p[0] == a || p[1] == a)
+                    .all(|p| allowed.contains(if p[0] == a { &p[1] } else { &p[0] }));
+            Check { value: serde_json::json!(touched), pass: ok }
+        }
+        Criterion::Joint { fixture, min, max } => {
+            let Some(k) = trace.joints.iter().position(|j| j == fixture) else { return missing(fixture) };
+            let v = s.joints[k];
+            let ok = min.is_none_or(|m| v >= m) && max.is_none_or(|m| v <= m);
+            Check { value: serde_json::json!(round(v)), pass: ok }
+        }
+        Criterion::Upright { object, tolerance_deg } => {
+            let Some(i) = trace.object(object) else { return missing(object) };
+            let o = s.objects[i];
+            let z = quat_rotate([o[3], o[4], o[5], o[6]], [0.0, 0.0, 1.0]);
+            let tilt = z[2].clamp(-1.0, 1.0).acos().to_degrees();
+            Check { value: serde_json::json!({"tilt_deg": round(tilt)}), pass: tilt <= *tolerance_deg }
+        }
+        Criterion::Released { objects, min_distance_m } => {
+            let open = s.finger_m > 0.5 * trace.finger_max_m;
+            let mut nearest = f64::INFINITY;
+            for o in objects {
+                let Some(i) = trace.object(o) else { return missing(o) };
+                let p = s.objects[i];
+                let d =
+                    ((p[0] - s.tcp_m[0]).powi(2) + (p[1] - s.tcp_m[1]).powi(2) + (p[2] - s.tcp_m[2]).powi(2)).sqrt();
+                nearest = nearest.min(d);
+            }
+            Check {
+                value: serde_json::json!({"gripper_open": open, "tcp_distance_m": round(nearest)}),
+                pass: open && nearest >= *min_distance_m,
+            }
+        }
+        Criterion::Stable { objects, duration_s, max_speed_m_s } => {
+            let t_end = s.t_s;
+            let window: Vec<&Sample> = trace.samples.iter().filter(|x| x.t_s >= t_end - duration_s).collect();
+            let mut fastest = 0.0f64;
+            for o in objects {
+                let Some(i) = trace.object(o) else { return missing(o) };
+                for w in window.windows(2) {
+                    let (a, b) = (w[0].objects[i], w[1].objects[i]);
+                    let dt = (w[1].t_s - w[0].t_s).max(1e-9);
+                    let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+                    fastest = fastest.max(d / dt);
+                }
+            }
+            let long_enough = window.first().is_some_and(|f| t_end - f.t_s >= duration_s - 0.011);
+            Check {
+                value: serde_json::json!({"max_speed_m_s": round(fastest)}),
+                pass: long_enough && fastest <= *max_speed_m_s,
+            }
+        }
+        Criterion::Past { object, axis, above, below } => {
+            let Some(i) = trace.object(object) else { return missing(object) };
+            let v = s.objects[i][*axis];
+            let ok = above.is_none_or(|a| v >= a) && below.is_none_or(|b| v <= b);
+            Check { value: serde_json::json!(round(v)), pass: ok }
+        }
+    }
+}
