@@ -1,7 +1,8 @@
 //! Camera rendering on its own thread, so physics keeps its rate. The physics thread hands over
 //! joint positions through a snapshot it only ever `try_lock`s; this thread re-runs kinematics
-//! on its own `MjData`, renders each camera with EGL, and publishes the image into a loaned
-//! iceoryx2 sample. Agents read frames in place.
+//! on its own `MjData`, renders each camera with EGL (RGB, and depth in metres along the optical
+//! axis), and publishes the images with their intrinsics and pose into a loaned iceoryx2
+//! sample. Agents read frames in place.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -33,6 +34,81 @@ pub struct RenderConfig {
     pub rate_hz: f64,
 }
 
+/// Pinhole intrinsics of a MuJoCo camera (square pixels, principal point at the centre).
+pub fn intrinsics(spec: &CameraSpec) -> (f64, f64, f64, f64) {
+    let f = 0.5 * spec.height as f64 / (0.5 * spec.fovy_deg.to_radians()).tan();
+    (f, f, spec.width as f64 / 2.0, spec.height as f64 / 2.0)
+}
+
+/// Offscreen renderer with its own copy of the model's kinematics.
+pub struct Cameras {
+    renderer: MjRenderer,
+    data: MjData<Arc<MjModel>>,
+    model: Arc<MjModel>,
+}
+
+impl Cameras {
+    /// A renderer for images of `width × height`, with depth when `depth` is set.
+    pub fn new(model: Arc<MjModel>, width: u32, height: u32, depth: bool) -> anyhow::Result<Self> {
+        let renderer =
+            MjRenderer::builder().width(width).height(height).rgb(true).depth(depth).build(&model).map_err(|e| {
+                anyhow::anyhow!("cannot start headless rendering (EGL): {e}; install Mesa's EGL (make deps)")
+            })?;
+        let data = MjData::new(model.clone());
+        Ok(Self { renderer, data, model })
+    }
+
+    /// Poses the scene at `qpos` (from a model of the same size).
+    pub fn set_state(&mut self, qpos: &[f64], time_s: f64) {
+        // SAFETY: qpos holds nq values; the caller's qpos comes from the same model.
+        unsafe {
+            let d = self.data.ffi_mut();
+            let n = (self.model.ffi().nq as usize).min(qpos.len());
+            std::slice::from_raw_parts_mut(d.qpos, n).copy_from_slice(&qpos[..n]);
+            d.time = time_s;
+            mj_kinematics(self.model.ffi(), d);
+            mj_camlight(self.model.ffi(), d);
+        }
+    }
+
+    /// Renders camera `cam_id`: RGB bytes (row-major, top row first) and, when enabled, depth
+    /// in metres along the optical axis.
+    pub fn render(&mut self, cam_id: usize) -> anyhow::Result<(&[u8], Option<&[f32]>)> {
+        self.renderer.set_camera(MjvCamera::new_fixed(cam_id));
+        self.renderer.sync_data(&mut self.data).map_err(|e| anyhow::anyhow!("render sync: {e}"))?;
+        self.renderer.render().map_err(|e| anyhow::anyhow!("render: {e}"))?;
+        let rgb = self.renderer.rgb_flat().ok_or_else(|| anyhow::anyhow!("renderer produced no RGB"))?;
+        Ok((rgb, self.renderer.depth_flat()))
+    }
+
+    /// World pose of a body: (position, quaternion x, y, z, w).
+    pub fn body_pose(&self, body: usize) -> ([f64; 3], math::Quat) {
+        let d = self.data.ffi();
+        // SAFETY: body indexes xpos/xquat.
+        unsafe {
+            let p = std::slice::from_raw_parts(d.xpos.add(3 * body), 3);
+            let q = std::slice::from_raw_parts(d.xquat.add(4 * body), 4);
+            ([p[0], p[1], p[2]], [q[1], q[2], q[3], q[0]])
+        }
+    }
+
+    /// World pose of the camera's optical frame (x right, y down, z forward).
+    pub fn optical_pose(&self, cam_id: usize) -> ([f64; 3], math::Quat) {
+        let d = self.data.ffi();
+        // SAFETY: cam_id indexes cam_xpos/cam_xmat.
+        let (p, m) = unsafe {
+            let p = std::slice::from_raw_parts(d.cam_xpos.add(3 * cam_id), 3);
+            let m = std::slice::from_raw_parts(d.cam_xmat.add(9 * cam_id), 9);
+            let mut mm = [0.0; 9];
+            mm.copy_from_slice(m);
+            ([p[0], p[1], p[2]], mm)
+        };
+        // MuJoCo's camera frame has y up and z backwards; the optical frame has y down and z
+        // forwards: a half turn about x.
+        math::compose((p, math::quat_from_mat(&m)), ([0.0; 3], [1.0, 0.0, 0.0, 0.0]))
+    }
+}
+
 /// Runs until `stop` is set. Errors end the thread with a message; physics continues.
 pub fn run(
     model: Arc<MjModel>,
@@ -50,11 +126,8 @@ pub fn run(
         publishers.push(svc.publisher_builder().max_loaned_samples(1).create()?);
     }
     let (w, h) = cfg.cameras.first().map(|(c, _)| (c.width, c.height)).unwrap_or((640, 480));
-    let mut renderer =
-        MjRenderer::builder().width(w).height(h).rgb(true).depth(false).build(&model).map_err(|e| {
-            anyhow::anyhow!("cannot start headless rendering (EGL): {e}; install Mesa's EGL (make deps)")
-        })?;
-    let mut data = MjData::new(model.clone());
+    let any_depth = cfg.cameras.iter().any(|(c, _)| c.depth);
+    let mut cams = Cameras::new(model, w, h, any_depth)?;
     let period = Duration::from_secs_f64(1.0 / cfg.rate_hz.max(0.1));
     let mut last_seq = u64::MAX;
     let mut next = Instant::now();
@@ -78,52 +151,20 @@ pub fn run(
         }
         next = Instant::now() + period;
         last_seq = snap.state_seq;
-        // SAFETY: qpos holds nq values, and snap.qpos was taken from a model of the same size.
-        unsafe {
-            let d = data.ffi_mut();
-            std::slice::from_raw_parts_mut(d.qpos, snap.qpos.len()).copy_from_slice(&snap.qpos);
-            d.time = snap.sim_time_s;
-            mj_kinematics(model.ffi(), d);
-            mj_camlight(model.ffi(), d);
-        }
-        let world_from_base = {
-            let d = data.ffi();
-            // SAFETY: base_body indexes xpos/xquat.
-            unsafe {
-                let p = std::slice::from_raw_parts(d.xpos.add(3 * cfg.base_body), 3);
-                let q = std::slice::from_raw_parts(d.xquat.add(4 * cfg.base_body), 4);
-                ([p[0], p[1], p[2]], [q[1], q[2], q[3], q[0]])
-            }
-        };
+        cams.set_state(&snap.qpos, snap.sim_time_s);
+        let world_from_base = cams.body_pose(cfg.base_body);
         for ((spec, cam_id), publisher) in cfg.cameras.iter().zip(&publishers) {
-            renderer.set_camera(MjvCamera::new_fixed(*cam_id));
-            renderer.sync_data(&mut data).map_err(|e| anyhow::anyhow!("render sync: {e}"))?;
-            renderer.render().map_err(|e| anyhow::anyhow!("render: {e}"))?;
-            let Some(rgb) = renderer.rgb_flat() else { continue };
-            let (cam_p, cam_m) = {
-                let d = data.ffi();
-                // SAFETY: cam_id indexes cam_xpos/cam_xmat.
-                unsafe {
-                    let p = std::slice::from_raw_parts(d.cam_xpos.add(3 * cam_id), 3);
-                    let m = std::slice::from_raw_parts(d.cam_xmat.add(9 * cam_id), 9);
-                    let mut mm = [0.0; 9];
-                    mm.copy_from_slice(m);
-                    ([p[0], p[1], p[2]], mm)
-                }
-            };
-            // MuJoCo's camera frame has y up and z backwards; the optical frame has y down and
-            // z forwards: a half turn about x.
-            let world_from_optical =
-                math::compose((cam_p, math::quat_from_mat(&cam_m)), ([0.0; 3], [1.0, 0.0, 0.0, 0.0]));
-            let (bp, bq) = math::compose(math::inverse(world_from_base), world_from_optical);
-            let fy = 0.5 * spec.height as f64 / (0.5 * spec.fovy_deg.to_radians()).tan();
+            let (bp, bq) = math::compose(math::inverse(world_from_base), cams.optical_pose(*cam_id));
+            let (fx, fy, cx, cy) = intrinsics(spec);
+            let (rgb, depth) = cams.render(*cam_id)?;
+            let depth = if spec.depth { depth } else { None };
             frame_seq += 1;
             let mut sample = publisher.loan_uninit()?;
             let p = sample.payload_mut().as_mut_ptr();
-            let n = (spec.width * spec.height * 3) as usize;
+            let n = (spec.width * spec.height) as usize;
             // SAFETY: p points at a CameraFrame-sized sample we own. Every header field is written
-            // below and the used part of `rgb`; the rest of the pixel buffers is plain bytes/floats
-            // that readers never look at beyond width × height.
+            // below and the used part of `rgb` and `depth_m`; the rest of the pixel buffers is
+            // zeroed so every byte is initialised before assume_init.
             let sample = unsafe {
                 (*p).seq = frame_seq;
                 (*p).sim_time_s = snap.sim_time_s;
@@ -131,20 +172,23 @@ pub fn run(
                 (*p).rendered_ns = ipc_schema::monotonic_ns();
                 (*p).width = spec.width;
                 (*p).height = spec.height;
-                (*p).has_depth = 0;
+                (*p).has_depth = u32::from(depth.is_some());
                 (*p)._pad = 0;
-                (*p).fx = fy;
+                (*p).fx = fx;
                 (*p).fy = fy;
-                (*p).cx = spec.width as f64 / 2.0;
-                (*p).cy = spec.height as f64 / 2.0;
+                (*p).cx = cx;
+                (*p).cy = cy;
                 (*p).base_from_camera = Pose { position_m: bp, quat_xyzw: bq };
                 let rgb_dst = std::ptr::addr_of_mut!((*p).rgb).cast::<u8>();
-                let used = n.min(rgb.len());
+                let used = (3 * n).min(rgb.len());
                 std::ptr::copy_nonoverlapping(rgb.as_ptr(), rgb_dst, used);
-                // Every byte initialised before assume_init: the unused tail and the depth plane
-                // (not rendered yet) are zeroed.
                 std::ptr::write_bytes(rgb_dst.add(used), 0, MAX_RGB - used);
-                std::ptr::write_bytes(std::ptr::addr_of_mut!((*p).depth_m).cast::<f32>(), 0, MAX_PIXELS);
+                let depth_dst = std::ptr::addr_of_mut!((*p).depth_m).cast::<f32>();
+                let used = depth.map(|d| n.min(d.len())).unwrap_or(0);
+                if let Some(d) = depth {
+                    std::ptr::copy_nonoverlapping(d.as_ptr(), depth_dst, used);
+                }
+                std::ptr::write_bytes(depth_dst.add(used), 0, MAX_PIXELS - used);
                 sample.assume_init()
             };
             sample.send()?;

@@ -134,6 +134,9 @@ pub struct CameraSpec {
     pub width: u32,
     #[serde(default = "default_height")]
     pub height: u32,
+    /// Render depth (metres along the optical axis) beside RGB.
+    #[serde(default = "default_true")]
+    pub depth: bool,
 }
 
 /// A RealSense-like view from across the table, and a camera on the hand looking past the
@@ -149,6 +152,7 @@ fn default_cameras() -> Vec<CameraSpec> {
             fovy_deg: 50.0,
             width: 640,
             height: 480,
+            depth: true,
         },
         CameraSpec {
             name: "wrist".into(),
@@ -159,6 +163,7 @@ fn default_cameras() -> Vec<CameraSpec> {
             fovy_deg: 60.0,
             width: 640,
             height: 480,
+            depth: true,
         },
     ]
 }
@@ -404,7 +409,7 @@ fn default_diffuse() -> [f64; 3] {
 }
 
 /// What the agent is asked, how success is judged, and a demonstration that achieves it.
-#[derive(Debug, Clone, Default, Deserialize)]
+#[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TaskSpec {
     /// What the task asks, in plain language.
@@ -425,6 +430,19 @@ pub struct TaskSpec {
     /// Physics time the episode runs on after the last action before judging, s.
     #[serde(default = "default_settle")]
     pub settle_s: f64,
+}
+
+impl Default for TaskSpec {
+    fn default() -> Self {
+        Self {
+            instruction: String::new(),
+            demonstration: None,
+            demonstration_hz: default_demo_hz(),
+            success: Vec::new(),
+            max_penetration_m: default_penetration(),
+            settle_s: default_settle(),
+        }
+    }
 }
 
 fn default_demo_hz() -> f64 {
@@ -654,9 +672,9 @@ impl Scene {
                 return Err(format!("{at}: needs at least one part that collides (role both or collision)"));
             }
             check_cavity(&at, o.cavity_min_m, o.cavity_max_m)?;
-            if !(o.jitter_xy_m.is_finite() && (0.0..=0.2).contains(&o.jitter_xy_m))
-                || !(o.jitter_yaw_deg.is_finite() && (0.0..=180.0).contains(&o.jitter_yaw_deg))
-            {
+            let ok_xy = o.jitter_xy_m.is_finite() && (0.0..=0.2).contains(&o.jitter_xy_m);
+            let ok_yaw = o.jitter_yaw_deg.is_finite() && (0.0..=180.0).contains(&o.jitter_yaw_deg);
+            if !(ok_xy && ok_yaw) {
                 return Err(format!("{at}: jitter_xy_m in [0, 0.2] and jitter_yaw_deg in [0, 180] are accepted"));
             }
         }
@@ -866,9 +884,9 @@ impl Scene {
                     for o in objects {
                         object(o, i, "objects")?;
                     }
-                    if !(duration_s.is_finite() && *duration_s > 0.0 && *duration_s <= t.settle_s.max(0.01) + 60.0)
-                        || !(max_speed_m_s.is_finite() && *max_speed_m_s > 0.0)
-                    {
+                    let ok_duration = duration_s.is_finite() && *duration_s > 0.0 && *duration_s <= 60.0;
+                    let ok_speed = max_speed_m_s.is_finite() && *max_speed_m_s > 0.0;
+                    if !(ok_duration && ok_speed) {
                         return Err(format!(
                             "task.success[{i}] (stable): accepted are a positive duration_s and max_speed_m_s"
                         ));

@@ -168,12 +168,12 @@ impl Sim {
             }
             let owner = if top == 0 {
                 let name = m.id_to_name(MjtObjBase::mjOBJ_GEOM, g).unwrap_or_default();
-                owner_of_name(&name).unwrap_or(u16::MAX)
+                owner_of_name(name).unwrap_or(u16::MAX)
             } else if top == layout.base_body {
                 robot_owner
             } else {
                 let name = m.id_to_name(MjtObjBase::mjOBJ_BODY, top).unwrap_or_default();
-                owner_of_name(&name).unwrap_or(u16::MAX)
+                owner_of_name(name).unwrap_or(u16::MAX)
             };
             layout.geom_owner.push(owner);
         }
@@ -260,7 +260,7 @@ impl Sim {
     /// Samples the trace when it is due (every 10 ms of simulated time, and at step 0).
     pub fn record(&self, trace: &mut Trace) {
         let every = ((TRACE_PERIOD_S / self.scene.timestep_s).round() as u64).max(1);
-        if self.steps % every == 0 {
+        if self.steps.is_multiple_of(every) {
             trace.samples.push(self.sample());
         }
     }
