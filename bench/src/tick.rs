@@ -32,6 +32,7 @@ pub fn run(gym: &str, seconds: f64) -> anyhow::Result<Value> {
             "--stats-out".into(),
             stats_path.display().to_string(),
         ],
+        sim_args: Vec::new(),
         ready_timeout: Duration::from_secs(60),
     };
     let mut inst = Instance::up(&opts)?;

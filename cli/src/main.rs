@@ -50,6 +50,10 @@ enum Cmd {
         /// Camera frames per second (0: no rendering).
         #[arg(long, default_value_t = 10.0)]
         render_hz: f64,
+        /// Record the native trace and judge every episode (ended by a reset or by stopping)
+        /// into this folder: episode-N.trace.json and episode-N.eval.json.
+        #[arg(long)]
+        trace_dir: Option<std::path::PathBuf>,
     },
     /// List the gyms of the pack, one name per line.
     Gyms,
@@ -184,7 +188,9 @@ fn main() {
     let cli = Cli::parse();
     process::install_stop_signals();
     let r = match cli.command {
-        Cmd::Up { gym, mode, instance, render_hz } => up(&gym, mode, &instance, render_hz),
+        Cmd::Up { gym, mode, instance, render_hz, trace_dir } => {
+            up(&gym, mode, &instance, render_hz, trace_dir.as_deref())
+        }
         Cmd::Gyms => gyms(),
         Cmd::Replay { gym, seed, do_nothing, out } => replay(&gym, seed, do_nothing, &out),
         Cmd::AuthorDemo { gym } => author::run(&gym).map(|_| 0),
@@ -248,7 +254,13 @@ fn replay(gym: &str, seed: u64, do_nothing: bool, out: &std::path::Path) -> anyh
     Ok(if r.evaluation.success { 0 } else { 1 })
 }
 
-fn up(gym: &str, mode: ModeArg, instance: &str, render_hz: f64) -> anyhow::Result<i32> {
+fn up(
+    gym: &str,
+    mode: ModeArg,
+    instance: &str,
+    render_hz: f64,
+    trace_dir: Option<&std::path::Path>,
+) -> anyhow::Result<i32> {
     let opts = UpOptions {
         scene: launch::resolve_scene(gym)?,
         instance: instance.into(),
@@ -258,6 +270,7 @@ fn up(gym: &str, mode: ModeArg, instance: &str, render_hz: f64) -> anyhow::Resul
         },
         render_hz,
         control_args: Vec::new(),
+        sim_args: trace_dir.map(|d| vec!["--trace-dir".into(), d.display().to_string()]).unwrap_or_default(),
         ready_timeout: Duration::from_secs(60),
     };
     let mut inst = Instance::up(&opts)?;

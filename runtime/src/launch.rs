@@ -94,6 +94,8 @@ pub struct UpOptions {
     pub render_hz: f64,
     /// Extra arguments for r2g-control (e.g. --duration-s, --stats-out).
     pub control_args: Vec<String>,
+    /// Extra arguments for r2g-sim (e.g. --trace-dir).
+    pub sim_args: Vec<String>,
     pub ready_timeout: Duration,
 }
 
@@ -148,16 +150,10 @@ impl Instance {
             }
         }
         let scene = opts.scene.display().to_string();
-        let sim = spawn(
-            &sibling("r2g-sim")?,
-            &[
-                scene.clone(),
-                "--instance".into(),
-                opts.instance.clone(),
-                "--render-hz".into(),
-                opts.render_hz.to_string(),
-            ],
-        )?;
+        let mut sim_args =
+            vec![scene.clone(), "--instance".into(), opts.instance.clone(), "--render-hz".into(), opts.render_hz.to_string()];
+        sim_args.extend(opts.sim_args.iter().cloned());
+        let sim = spawn(&sibling("r2g-sim")?, &sim_args)?;
         let mode = if opts.mode == Mode::Lockstep { "lockstep" } else { "wall" };
         let mut control_args = vec![scene, "--instance".into(), opts.instance.clone(), "--mode".into(), mode.into()];
         control_args.extend(opts.control_args.iter().cloned());

@@ -12,6 +12,7 @@ use ipc_schema::{JointCommand, Qos, Services, SimInfo, SimReset, SimState};
 use sim_host::render::{self, RenderConfig, Snapshot};
 use sim_host::Sim;
 
+
 /// MuJoCo sim-host: steps physics once per joint command from r2g-control, publishes the
 /// measured robot state, and renders the scene's cameras into shared memory.
 /// Normally started by `r2g up`, not by hand.
@@ -29,6 +30,29 @@ struct Args {
     /// Write the compiled MJCF here and continue (for inspection).
     #[arg(long)]
     dump_mjcf: Option<PathBuf>,
+    /// Record the native trace and judge each episode (ended by a reset or by stopping) into
+    /// this folder. Nothing of it crosses to agents.
+    #[arg(long)]
+    trace_dir: Option<PathBuf>,
+}
+
+/// Writes an episode's trace and its evaluation; a failure to write is reported, not fatal.
+fn finish_episode(sim: &Sim, dir: &std::path::Path, episode: u64, trace: &sim_host::trace::Trace) {
+    let evaluation = sim_host::trace::evaluate(&sim.scene, trace);
+    let write = || -> anyhow::Result<()> {
+        std::fs::create_dir_all(dir)?;
+        std::fs::write(dir.join(format!("episode-{episode}.trace.json")), serde_json::to_vec(trace)?)?;
+        std::fs::write(dir.join(format!("episode-{episode}.eval.json")), serde_json::to_vec_pretty(&evaluation)?)?;
+        Ok(())
+    };
+    match write() {
+        Ok(()) => eprintln!(
+            "r2g-sim: episode {episode} judged: success = {} ({})",
+            evaluation.success,
+            dir.join(format!("episode-{episode}.eval.json")).display()
+        ),
+        Err(e) => eprintln!("r2g-sim: cannot write the trace of episode {episode} to {}: {e:#}", dir.display()),
+    }
 }
 
 fn main() {
@@ -95,6 +119,11 @@ fn run() -> anyhow::Result<()> {
         None
     };
 
+    let mut trace = args.trace_dir.as_ref().map(|_| sim.new_trace());
+    let mut episode = 1u64;
+    if let Some(t) = trace.as_mut() {
+        sim.record(t);
+    }
     let control = PeerWatch::spawn(process::control_node(&args.instance), Duration::from_secs(30));
     let mut seq = 1u64;
     let mut reset_id = 0u64;
@@ -124,7 +153,15 @@ fn run() -> anyhow::Result<()> {
         let _ = wake.timed_wait(|_| {}, Duration::from_millis(20));
         let mut stepped = false;
         while let Some(r) = reset_sub.receive()? {
+            if let (Some(dir), Some(t)) = (&args.trace_dir, trace.as_mut()) {
+                finish_episode(&sim, dir, episode, t);
+                episode += 1;
+                *t = sim.new_trace();
+            }
             sim.reset();
+            if let Some(t) = trace.as_mut() {
+                sim.record(t);
+            }
             reset_id = r.id;
             seq += 1;
             sim.reset_state_seq = seq;
@@ -138,6 +175,9 @@ fn run() -> anyhow::Result<()> {
             }
             last_cmd_seq = cmd.seq;
             sim.step(&cmd);
+            if let Some(t) = trace.as_mut() {
+                sim.record(t);
+            }
             seq += 1;
             publish(&sim, seq, cmd.seq, reset_id)?;
             stepped = true;
@@ -166,6 +206,9 @@ fn run() -> anyhow::Result<()> {
             }
         }
     };
+    if let (Some(dir), Some(t)) = (&args.trace_dir, trace.as_ref()) {
+        finish_episode(&sim, dir, episode, t);
+    }
     stop.store(true, Ordering::Relaxed);
     if let Some(t) = render_thread {
         let _ = t.join();

@@ -17,12 +17,12 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 
 class Instance:
-    def __init__(self, name: str, mode: str, gym: str = "pick_block_plate") -> None:
+    def __init__(self, name: str, mode: str, gym: str = "pick_block_plate", extra: tuple[str, ...] = ()) -> None:
         if not R2G.is_file():
             raise RuntimeError(f"{R2G} missing: run `make build` first")
         self.name = name
         self.proc = subprocess.Popen(
-            [str(R2G), "up", gym, "--instance", name, "--mode", mode, "--render-hz", "10"],
+            [str(R2G), "up", gym, "--instance", name, "--mode", mode, "--render-hz", "10", *extra],
             stdout=subprocess.PIPE,
             stdin=subprocess.DEVNULL,
             text=True,
@@ -74,6 +74,8 @@ def fr3(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Instance]:
     text = (ROOT / "gyms" / "pick_block_plate" / "scene.toml").read_text()
     urdf = ROOT / "robots" / "panda" / "panda.urdf"
     text = text.replace('urdf = "../../robots/panda/panda.urdf"', f'urdf = "{urdf}"\nlimits = "fr3"')
+    demo = ROOT / "gyms" / "pick_block_plate" / "demo.csv"
+    text = text.replace('demonstration = "demo.csv"', f'demonstration = "{demo}"')
     text += "\n[safety]\nworkspace_min_m = [-0.2, -0.6, 0.1]\nworkspace_max_m = [1.1, 0.6, 1.0]\n"
     scene = tmp_path_factory.mktemp("fr3") / "scene.toml"
     scene.write_text(text)
