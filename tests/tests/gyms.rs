@@ -78,3 +78,24 @@ fn same_gym_seed_and_actions_give_the_same_trace() {
     // The seed moves the block (jitter_xy_m), so another seed must give another trace.
     assert_ne!(a, hash("8"), "different seeds gave the same trace");
 }
+
+#[test]
+fn the_robotiq_2f85_picks_and_places_the_block_too() {
+    // pick_block_plate with the Robotiq description: the same TCP keyframes, authored into a
+    // joint demonstration for this gripper's TCP, must succeed under native physics.
+    let root = integration_tests::root();
+    let dir = std::path::PathBuf::from(out_dir("robotiq"));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let urdf = root.join("robots/panda/panda_robotiq.urdf");
+    let scene = std::fs::read_to_string(root.join("gyms/pick_block_plate/scene.toml"))
+        .expect("scene")
+        .replace("urdf = \"../../robots/panda/panda.urdf\"", &format!("urdf = \"{}\"", urdf.display()));
+    std::fs::write(dir.join("scene.toml"), scene).expect("write scene");
+    std::fs::copy(root.join("gyms/pick_block_plate/keyframes.toml"), dir.join("keyframes.toml")).expect("keyframes");
+    let d = dir.display().to_string();
+    let out = Command::new(integration_tests::r2g()).args(["author-demo", &d]).output().expect("author-demo");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (code, v, stderr) = replay(&d, &[]);
+    assert!(code == 0 && v["success"] == true, "{v}\n{stderr}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
