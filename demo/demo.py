@@ -1,14 +1,19 @@
-"""Moves the simulated Panda through a few joint targets through `robo`, saves both camera
-images, and prints how close the arm came to its targets.
+"""Moves the simulated Panda through a few joint targets through `robo`, then plays the gym's
+demonstration (pick the block, put it on the plate) as joint chunks, saves both camera images,
+and prints the native evaluator's verdict on that episode.
 
-Run by `make demo` against an instance started with `r2g up pick_block_plate`.
+Run by `make demo` against an instance started with
+`r2g up pick_block_plate --trace-dir <out>/episodes`.
 """
 from __future__ import annotations
 
+import csv
+import json
 import math
 import os
 import sys
 import time
+from pathlib import Path
 
 from robo import get_state, post_actions, reset
 
@@ -49,6 +54,18 @@ def main() -> int:
             print("  reason:", fb["reason"])
             return 1
         current = goal
+    # The demonstration, as an agent would post it: joint chunks of at most 200 waypoints.
+    if reset() != 1:
+        return 1
+    demo = Path(__file__).resolve().parents[1] / "gyms" / "pick_block_plate" / "demo.csv"
+    with demo.open() as f:
+        rows = [[float(x) for x in r] for r in csv.reader(f) if r and not r[0].startswith("q")]
+    t = time.monotonic()
+    for start in range(0, len(rows), 200):
+        if post_actions({"actions": rows[start : start + 200], "type": "joint", "freq": ""}) != 1:
+            print("demonstration chunk failed:", get_state([])["control_feedback"])
+            return 1
+    print(f"played the demonstration ({len(rows)} waypoints) in {time.monotonic() - t:.1f} s")
     # A target past a joint limit is rejected with a reason, never clipped.
     bad = post_actions({"actions": [[0, 0, 0, 0.5, 0, 1.5, 0.7, -1]], "type": "joint", "freq": ""})
     print(f"out-of-range target returned {bad}: {get_state([])['control_feedback']['reason']}")
@@ -61,7 +78,24 @@ def main() -> int:
             f.write(png)
         print(f"saved {path} ({len(png)} bytes)")
     print(f"final joint error: {worst:.5f} rad (worst over {len(targets)} targets)")
-    return 0 if worst < 0.01 and not math.isnan(worst) else 1
+    # Ending the episode makes sim-host judge it from its native trace.
+    episodes = Path(OUT) / "episodes"
+    before = set(episodes.glob("episode-*.eval.json"))
+    reset()
+    for _ in range(100):
+        new = set(episodes.glob("episode-*.eval.json")) - before
+        if new:
+            break
+        time.sleep(0.05)
+    if not new:
+        print("no verdict was written for the demonstration episode")
+        return 1
+    verdict = new.pop()
+    ev = json.loads(verdict.read_text())
+    for name, check in ev["checks"].items():
+        print(f"  {'pass' if check['pass'] else 'FAIL'} {name}: {check['value']}")
+    print(f"episode judged from the native trace: success = {ev['success']} ({verdict})")
+    return 0 if worst < 0.01 and not math.isnan(worst) and ev["success"] else 1
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@ instance="demo$$"
 out=demo-out
 mkdir -p "$out"
 log=$(mktemp)
-target/release/r2g up pick_block_plate --instance "$instance" >"$log" &
+rm -rf "$out/episodes"
+target/release/r2g up pick_block_plate --instance "$instance" --trace-dir "$out/episodes" >"$log" &
 up=$!
 cleanup() { kill -TERM "$up" 2>/dev/null; wait "$up" 2>/dev/null; rm -f "$log"; }
 trap cleanup EXIT
@@ -19,5 +20,13 @@ grep -q "^READY" "$log" || { echo "demo: r2g up was not ready within 60 s" >&2; 
 echo "demo: $(cat "$log")"
 R2G_INSTANCE="$instance" .venv/bin/python demo/demo.py "$out"
 rc=$?
-echo "demo: images in $out/ (agentview.png, wrist.png); exit $rc"
+echo "demo: images in $out/ (agentview.png, wrist.png)"
+echo "demo: every gym's demonstration replayed in lockstep and judged natively:"
+for gym in $(target/release/r2g gyms); do
+  line=$(target/release/r2g replay "$gym" --out "$out/replay" 2>/dev/null | tail -1)
+  ok=$(echo "$line" | .venv/bin/python -c 'import json,sys; v=json.load(sys.stdin); print("success" if v["success"] else "FAILED", v["trace_sha256"][:16])' 2>/dev/null || echo "ERROR")
+  printf '  %-18s %s\n' "$gym" "$ok"
+  case "$ok" in success*) ;; *) rc=1 ;; esac
+done
+echo "demo: exit $rc"
 exit $rc

@@ -42,7 +42,10 @@ fn finish_episode(sim: &Sim, dir: &std::path::Path, episode: u64, trace: &sim_ho
     let write = || -> anyhow::Result<()> {
         std::fs::create_dir_all(dir)?;
         std::fs::write(dir.join(format!("episode-{episode}.trace.json")), serde_json::to_vec(trace)?)?;
-        std::fs::write(dir.join(format!("episode-{episode}.eval.json")), serde_json::to_vec_pretty(&evaluation)?)?;
+        // Written then renamed, so a reader never sees half a verdict.
+        let tmp = dir.join(format!(".episode-{episode}.eval.json.tmp"));
+        std::fs::write(&tmp, serde_json::to_vec_pretty(&evaluation)?)?;
+        std::fs::rename(&tmp, dir.join(format!("episode-{episode}.eval.json")))?;
         Ok(())
     };
     match write() {
