@@ -12,7 +12,6 @@ use ipc_schema::{JointCommand, Qos, Services, SimInfo, SimReset, SimState};
 use sim_host::render::{self, RenderConfig, Snapshot};
 use sim_host::Sim;
 
-
 /// MuJoCo sim-host: steps physics once per joint command from r2g-control, publishes the
 /// measured robot state, and renders the scene's cameras into shared memory.
 /// Normally started by `r2g up`, not by hand.

@@ -453,6 +453,11 @@ pub fn compile(scene: &Scene, urdf_xml: &str, model: &controllers::RobotModel) -
     for b in std::iter::once(root.name.as_str()).chain(first) {
         writeln!(o, "    <exclude body1=\"world\" body2=\"{b}\"/>").ok();
     }
+    // A fixture's moving part never collides with its own static parts: the joint's range is its
+    // end stop (MuJoCo does not filter these, because the static body is welded to the world).
+    for fx in scene.fixtures.iter().filter(|f| f.joint.is_some()) {
+        writeln!(o, "    <exclude body1=\"{}\" body2=\"{}{MOVING_SUFFIX}\"/>", fx.name, fx.name).ok();
+    }
     writeln!(o, "  </contact>").ok();
     // The mimic joints of the gripper follow the driven finger.
     let mimics: Vec<&urdf_rs::Joint> =
