@@ -19,12 +19,13 @@ def test_a_live_lockstep_episode_is_judged_from_its_native_trace(tmp_path: Path)
     previous = os.environ.get("R2G_INSTANCE")
     os.environ["R2G_INSTANCE"] = inst.name
     try:
-        for start in range(0, len(rows), 200):
-            assert robo.post_actions({"actions": rows[start : start + 200], "type": "joint", "freq": ""}) == 1
-        # Nothing privileged came back: the state has no object poses.
-        assert "objects" not in robo.get_state(cameras=[])
-        robo.reset()  # ends episode 1
-        # Episode 2: doing nothing at all.
+        for _ in range(2):  # episodes 1 and 2: the same actions
+            for start in range(0, len(rows), 200):
+                assert robo.post_actions({"actions": rows[start : start + 200], "type": "joint", "freq": ""}) == 1
+            # Nothing privileged came back: the state has no object poses.
+            assert "objects" not in robo.get_state(cameras=[])
+            robo.reset()
+        # Episode 3: doing nothing at all.
     finally:
         inst.stop()  # ends episode 2
         if previous is None:
@@ -36,6 +37,9 @@ def test_a_live_lockstep_episode_is_judged_from_its_native_trace(tmp_path: Path)
     assert first["checks"]["on:block:plate"]["pass"] is True
     trace = json.loads((tmp_path / "episode-1.trace.json").read_text())
     assert trace["objects"] == ["block", "plate"] and len(trace["samples"]) == first["samples"]
+    # Lockstep across the real processes: same scene, same actions, the same trace.
     second = json.loads((tmp_path / "episode-2.eval.json").read_text())
-    assert second["success"] is False, second
-    assert second["criteria_sha256"] == first["criteria_sha256"]
+    assert second["success"] is True and second["trace_sha256"] == first["trace_sha256"], second
+    idle = json.loads((tmp_path / "episode-3.eval.json").read_text())
+    assert idle["success"] is False, idle
+    assert idle["criteria_sha256"] == first["criteria_sha256"]
