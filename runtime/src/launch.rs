@@ -150,8 +150,13 @@ impl Instance {
             }
         }
         let scene = opts.scene.display().to_string();
-        let mut sim_args =
-            vec![scene.clone(), "--instance".into(), opts.instance.clone(), "--render-hz".into(), opts.render_hz.to_string()];
+        let mut sim_args = vec![
+            scene.clone(),
+            "--instance".into(),
+            opts.instance.clone(),
+            "--render-hz".into(),
+            opts.render_hz.to_string(),
+        ];
         sim_args.extend(opts.sim_args.iter().cloned());
         let sim = spawn(&sibling("r2g-sim")?, &sim_args)?;
         let mode = if opts.mode == Mode::Lockstep { "lockstep" } else { "wall" };
