@@ -496,12 +496,21 @@ pub enum Criterion {
     },
     /// The objects move less than `max_speed_m_s` over the final `duration_s`.
     Stable {
+        #[serde(default)]
         objects: Vec<String>,
+        /// Fixtures whose joint must have come to rest too.
+        #[serde(default)]
+        fixtures: Vec<String>,
         #[serde(default = "default_stable_duration")]
         duration_s: f64,
         #[serde(default = "default_stable_speed")]
         max_speed_m_s: f64,
+        /// Hinges must turn slower than this (slides use `max_speed_m_s`).
+        #[serde(default = "default_stable_joint_speed")]
+        max_joint_deg_s: f64,
     },
+    /// The two named things (objects, fixtures, `robot`, `table`) end not touching.
+    Apart { a: String, b: String },
     /// The object's origin ends with its coordinate `axis` (0 x, 1 y, 2 z) past a plane.
     Past {
         object: String,
@@ -522,6 +531,9 @@ fn default_release_distance() -> f64 {
 fn default_stable_duration() -> f64 {
     0.5
 }
+fn default_stable_joint_speed() -> f64 {
+    2.0
+}
 fn default_stable_speed() -> f64 {
     0.02
 }
@@ -537,8 +549,12 @@ impl Criterion {
             Criterion::TouchesOnly { object, others } => format!("touches_only:{object}:{}", others.join("+")),
             Criterion::Joint { fixture, .. } => format!("joint:{fixture}"),
             Criterion::Upright { object, .. } => format!("upright:{object}"),
+            Criterion::Released { objects, .. } if objects.is_empty() => "released:gripper".into(),
             Criterion::Released { objects, .. } => format!("released:{}", objects.join("+")),
-            Criterion::Stable { objects, .. } => format!("stable:{}", objects.join("+")),
+            Criterion::Stable { objects, fixtures, .. } => {
+                format!("stable:{}", objects.iter().chain(fixtures).cloned().collect::<Vec<_>>().join("+"))
+            }
+            Criterion::Apart { a, b } => format!("apart:{a}:{b}"),
             Criterion::Past { object, axis, .. } => {
                 format!("past:{object}:{}", ["x", "y", "z"].get(*axis).unwrap_or(&"?"))
             }
@@ -880,16 +896,31 @@ impl Scene {
                         return Err(format!("task.success[{i}].min_distance_m: accepted is a number >= 0"));
                     }
                 }
-                Criterion::Stable { objects, duration_s, max_speed_m_s } => {
+                Criterion::Stable { objects, fixtures, duration_s, max_speed_m_s, max_joint_deg_s } => {
                     for o in objects {
                         object(o, i, "objects")?;
                     }
+                    for f in fixtures {
+                        if !self.fixtures.iter().any(|x| &x.name == f && x.joint.is_some()) {
+                            return Err(format!(
+                                "task.success[{i}].fixtures = '{f}': accepted are fixtures with a joint"
+                            ));
+                        }
+                    }
                     let ok_duration = duration_s.is_finite() && *duration_s > 0.0 && *duration_s <= 60.0;
                     let ok_speed = max_speed_m_s.is_finite() && *max_speed_m_s > 0.0;
-                    if !(ok_duration && ok_speed) {
+                    let ok_joint = max_joint_deg_s.is_finite() && *max_joint_deg_s > 0.0;
+                    if !(ok_duration && ok_speed && ok_joint) || objects.is_empty() && fixtures.is_empty() {
                         return Err(format!(
-                            "task.success[{i}] (stable): accepted are a positive duration_s and max_speed_m_s"
+                            "task.success[{i}] (stable): accepted are objects and/or fixtures, and positive duration_s, max_speed_m_s and max_joint_deg_s"
                         ));
+                    }
+                }
+                Criterion::Apart { a, b } => {
+                    for (n, field) in [(a, "a"), (b, "b")] {
+                        if n != "robot" {
+                            anything(n, i, field)?;
+                        }
                     }
                 }
                 Criterion::Past { object: o, axis, above, below } => {

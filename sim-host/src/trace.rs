@@ -259,15 +259,17 @@ fn judge(scene: &Scene, trace: &Trace, s: &Sample, c: &Criterion) -> Check {
                     ((p[0] - s.tcp_m[0]).powi(2) + (p[1] - s.tcp_m[1]).powi(2) + (p[2] - s.tcp_m[2]).powi(2)).sqrt();
                 nearest = nearest.min(d);
             }
-            Check {
-                value: serde_json::json!({"gripper_open": open, "tcp_distance_m": round(nearest)}),
-                pass: open && nearest >= *min_distance_m,
-            }
+            let value = if objects.is_empty() {
+                serde_json::json!({"gripper_open": open})
+            } else {
+                serde_json::json!({"gripper_open": open, "tcp_distance_m": round(nearest)})
+            };
+            Check { value, pass: open && nearest >= *min_distance_m }
         }
-        Criterion::Stable { objects, duration_s, max_speed_m_s } => {
+        Criterion::Stable { objects, fixtures, duration_s, max_speed_m_s, max_joint_deg_s } => {
             let t_end = s.t_s;
             let window: Vec<&Sample> = trace.samples.iter().filter(|x| x.t_s >= t_end - duration_s).collect();
-            let mut fastest = 0.0f64;
+            let (mut fastest, mut fastest_joint, mut joints_ok) = (0.0f64, 0.0f64, true);
             for o in objects {
                 let Some(i) = trace.object(o) else { return missing(o) };
                 for w in window.windows(2) {
@@ -277,11 +279,30 @@ fn judge(scene: &Scene, trace: &Trace, s: &Sample, c: &Criterion) -> Check {
                     fastest = fastest.max(d / dt);
                 }
             }
+            for f in fixtures {
+                let Some(k) = trace.joints.iter().position(|j| j == f) else { return missing(f) };
+                let hinge = scene
+                    .fixtures
+                    .iter()
+                    .find(|x| &x.name == f)
+                    .and_then(|x| x.joint.as_ref())
+                    .is_some_and(|j| j.kind == crate::scene::JointKind::Hinge);
+                for w in window.windows(2) {
+                    let speed = (w[1].joints[k] - w[0].joints[k]).abs() / (w[1].t_s - w[0].t_s).max(1e-9);
+                    fastest_joint = fastest_joint.max(speed);
+                    joints_ok &= speed <= if hinge { *max_joint_deg_s } else { *max_speed_m_s };
+                }
+            }
             let long_enough = window.first().is_some_and(|f| t_end - f.t_s >= duration_s - 0.011);
             Check {
-                value: serde_json::json!({"max_speed_m_s": round(fastest)}),
-                pass: long_enough && fastest <= *max_speed_m_s,
+                value: serde_json::json!({"max_speed_m_s": round(fastest), "max_joint_speed": round(fastest_joint)}),
+                pass: long_enough && fastest <= *max_speed_m_s && joints_ok,
             }
+        }
+        Criterion::Apart { a, b } => {
+            let (Some(x), Some(y)) = (trace.owner(a), trace.owner(b)) else { return missing(&format!("{a} or {b}")) };
+            let t = touching(x, y);
+            Check { value: serde_json::json!({"touching": t}), pass: !t }
         }
         Criterion::Past { object, axis, above, below } => {
             let Some(i) = trace.object(object) else { return missing(object) };
