@@ -1,6 +1,7 @@
 //! `r2g bench ipc`: one-way publish→receive latency between two processes, for the payloads
 //! the runtime moves, through iceoryx2 (zero-copy) and through the copying alternatives a lab
-//! would otherwise use: a Unix domain socket and TCP on loopback.
+//! would otherwise use: a Unix domain socket, TCP on loopback, and ZeroMQ PUSH/PULL over its
+//! `ipc://` transport (deoxys' choice; libzmq itself, built from source).
 //!
 //! Method: the sender stamps CLOCK_MONOTONIC into the message just before handing it over; the
 //! receiver, in another process on the other core, busy-polls and records `now − stamp` once
@@ -16,7 +17,8 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
-use ipc_schema::{monotonic_ns, CameraFrame, Qos, RobotState};
+use iceoryx2::prelude::ZeroCopySend;
+use ipc_schema::{monotonic_ns, CameraFrame, JointCommand, Qos, RobotState};
 use runtime::Histogram;
 use serde_json::{json, Value};
 
@@ -25,15 +27,17 @@ pub enum Transport {
     Iceoryx2,
     Uds,
     Tcp,
+    Zmq,
 }
 
 impl Transport {
-    pub const ALL: [Transport; 3] = [Transport::Iceoryx2, Transport::Uds, Transport::Tcp];
+    pub const ALL: [Transport; 4] = [Transport::Iceoryx2, Transport::Uds, Transport::Tcp, Transport::Zmq];
     pub fn name(self) -> &'static str {
         match self {
             Self::Iceoryx2 => "iceoryx2",
             Self::Uds => "uds",
             Self::Tcp => "tcp",
+            Self::Zmq => "zmq",
         }
     }
     pub fn parse(s: &str) -> anyhow::Result<Self> {
@@ -45,19 +49,26 @@ impl Transport {
 pub enum Payload {
     /// A robot state sample (~200 B).
     State,
+    /// A joint command (what the runtime sends the simulator or arm every tick).
+    Command,
     /// A 640×480 RGB frame.
     Frame,
     /// A 640×480 RGB frame with float depth.
     Rgbd,
+    /// 640×480 RGB frames sent back to back, unpaced: throughput (latency then includes queueing).
+    FrameBurst,
 }
 
 impl Payload {
-    pub const ALL: [Payload; 3] = [Payload::State, Payload::Frame, Payload::Rgbd];
+    pub const ALL: [Payload; 5] =
+        [Payload::State, Payload::Command, Payload::Frame, Payload::Rgbd, Payload::FrameBurst];
     pub fn name(self) -> &'static str {
         match self {
             Self::State => "state",
+            Self::Command => "command",
             Self::Frame => "frame",
             Self::Rgbd => "rgbd",
+            Self::FrameBurst => "frame_burst",
         }
     }
     pub fn parse(s: &str) -> anyhow::Result<Self> {
@@ -68,15 +79,17 @@ impl Payload {
         let px = ipc_schema::MAX_IMAGE_WIDTH * ipc_schema::MAX_IMAGE_HEIGHT;
         match self {
             Self::State => core::mem::size_of::<RobotState>(),
-            Self::Frame => 128 + px * 3,
+            Self::Command => core::mem::size_of::<JointCommand>(),
+            Self::Frame | Self::FrameBurst => 128 + px * 3,
             Self::Rgbd => 128 + px * 3 + px * 4,
         }
     }
     fn count_and_gap(self) -> (usize, Duration) {
         match self {
-            Self::State => (20_000, Duration::from_micros(200)),
+            Self::State | Self::Command => (20_000, Duration::from_micros(200)),
             Self::Frame => (2_000, Duration::from_millis(2)),
             Self::Rgbd => (1_000, Duration::from_millis(4)),
+            Self::FrameBurst => (2_000, Duration::ZERO),
         }
     }
 }
@@ -125,6 +138,75 @@ impl Recorder {
     }
 }
 
+/// A small fixed-size payload the benchmark can stamp with a send time.
+trait Stamped: core::fmt::Debug + ZeroCopySend + Default + 'static {
+    fn stamped(seq: u64, now_ns: u64) -> Self;
+    fn stamp(&self) -> u64;
+}
+
+impl Stamped for RobotState {
+    fn stamped(seq: u64, now_ns: u64) -> Self {
+        Self { seq, published_ns: now_ns, ..Default::default() }
+    }
+    fn stamp(&self) -> u64 {
+        self.published_ns
+    }
+}
+
+impl Stamped for JointCommand {
+    /// The command has no time field: the benchmark stamps it into `state_seq`.
+    fn stamped(seq: u64, now_ns: u64) -> Self {
+        Self { seq, state_seq: now_ns, ..Default::default() }
+    }
+    fn stamp(&self) -> u64 {
+        self.state_seq
+    }
+}
+
+type IpcNode = iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>;
+
+fn receive_small<T: Stamped>(
+    node: &IpcNode,
+    addr: &str,
+    qos: Qos,
+    count: usize,
+    deadline: Instant,
+    rec: &mut Recorder,
+) -> anyhow::Result<()> {
+    let sub = ipc_schema::open_or_create_pubsub::<T>(node, addr, qos)?.subscriber_builder().create()?;
+    println!("READY {addr}");
+    std::io::stdout().flush()?;
+    let mut last_seen = Instant::now();
+    while rec.got < count && Instant::now() < deadline && !(rec.got > 0 && last_seen.elapsed() > QUIET) {
+        if let Some(s) = sub.receive()? {
+            rec.record(s.stamp());
+            last_seen = Instant::now();
+        }
+    }
+    Ok(())
+}
+
+fn send_small<T: Stamped>(
+    node: &IpcNode,
+    target: &str,
+    qos: Qos,
+    count: usize,
+    pace: &dyn Fn(usize, Instant),
+) -> anyhow::Result<()> {
+    let publisher = ipc_schema::open_or_create_pubsub::<T>(node, target, qos)?.publisher_builder().create()?;
+    // Give the peer's subscriber a moment to be seen by the publisher.
+    std::thread::sleep(Duration::from_millis(50));
+    let start = Instant::now();
+    for i in 0..count {
+        pace(i, start);
+        publisher.loan_uninit()?.write_payload(T::stamped(i as u64, monotonic_ns())).send()?;
+    }
+    Ok(())
+}
+
+/// A receiver stops once the sender has been silent this long (drops must not stall a run).
+const QUIET: Duration = Duration::from_secs(2);
+
 /// The receiving side, run as `r2g bench ipc-peer` in its own process. Prints `READY <addr>`,
 /// then, after the sender finished, one JSON line of latency figures.
 pub fn peer(transport: Transport, payload: Payload, addr: &str, cpu: usize) -> anyhow::Result<()> {
@@ -134,22 +216,15 @@ pub fn peer(transport: Transport, payload: Payload, addr: &str, cpu: usize) -> a
     let deadline = Instant::now() + Duration::from_secs(120);
     // Stop when the sender has gone quiet (a dropped message must not stall the run).
     let mut last_seen = Instant::now();
-    let quiet = |got: usize, last_seen: Instant| got > 0 && last_seen.elapsed() > Duration::from_secs(2);
+    let quiet = |got: usize, last_seen: Instant| got > 0 && last_seen.elapsed() > QUIET;
     match transport {
         Transport::Iceoryx2 => {
             let node = ipc_schema::node(&format!("bench-ipc-peer-{}", std::process::id()))?;
             let qos = Qos { history: 0, buffer: 4, max_publishers: 1, max_subscribers: 2 };
-            if payload == Payload::State {
-                let sub =
-                    ipc_schema::open_or_create_pubsub::<RobotState>(&node, addr, qos)?.subscriber_builder().create()?;
-                println!("READY {addr}");
-                std::io::stdout().flush()?;
-                while rec.got < count && Instant::now() < deadline && !quiet(rec.got, last_seen) {
-                    if let Some(s) = sub.receive()? {
-                        rec.record(s.published_ns);
-                        last_seen = Instant::now();
-                    }
-                }
+            if payload == Payload::Command {
+                receive_small::<JointCommand>(&node, addr, qos, count, deadline, &mut rec)?;
+            } else if payload == Payload::State {
+                receive_small::<RobotState>(&node, addr, qos, count, deadline, &mut rec)?;
             } else {
                 let sub = ipc_schema::open_or_create_pubsub::<CameraFrame>(&node, addr, qos)?
                     .subscriber_builder()
@@ -162,6 +237,28 @@ pub fn peer(transport: Transport, payload: Payload, addr: &str, cpu: usize) -> a
                         rec.record(s.rendered_ns);
                         last_seen = Instant::now();
                     }
+                }
+            }
+        }
+        Transport::Zmq => {
+            let ctx = zmq::Context::new();
+            let sock = ctx.socket(zmq::PULL)?;
+            sock.bind(addr).with_context(|| format!("binding {addr}"))?;
+            println!("READY {addr}");
+            std::io::stdout().flush()?;
+            let mut msg = zmq::Message::new();
+            while rec.got < count && Instant::now() < deadline && !quiet(rec.got, last_seen) {
+                // Busy-poll, as the other receivers do.
+                match sock.recv(&mut msg, zmq::DONTWAIT) {
+                    Ok(()) => {
+                        if msg.len() != payload.bytes() {
+                            bail!("zmq message of {} bytes, expected {}", msg.len(), payload.bytes());
+                        }
+                        rec.record(u64::from_ne_bytes(msg[..8].try_into().unwrap_or([0; 8])));
+                        last_seen = Instant::now();
+                    }
+                    Err(zmq::Error::EAGAIN) => std::hint::spin_loop(),
+                    Err(e) => return Err(e.into()),
                 }
             }
         }
@@ -217,8 +314,13 @@ fn run_pair(transport: Transport, payload: Payload) -> anyhow::Result<Value> {
             .display()
             .to_string(),
         Transport::Tcp => "127.0.0.1:0".into(),
+        Transport::Zmq => format!(
+            "ipc://{}",
+            std::env::temp_dir().join(format!("r2g-bench-{}-{}.zmq", std::process::id(), payload.name())).display()
+        ),
     };
     let _ = std::fs::remove_file(&addr);
+    let _ = std::fs::remove_file(addr.trim_start_matches("ipc://"));
     let mut cmd = Command::new(exe);
     // SAFETY: prctl is async-signal-safe; the peer must not outlive this process.
     unsafe {
@@ -251,9 +353,7 @@ fn run_pair(transport: Transport, payload: Payload) -> anyhow::Result<Value> {
         }
     };
     let _ = child.wait();
-    if transport == Transport::Uds {
-        let _ = std::fs::remove_file(&addr);
-    }
+    let _ = std::fs::remove_file(addr.trim_start_matches("ipc://"));
     Ok(serde_json::from_str(&figures)?)
 }
 
@@ -271,22 +371,10 @@ fn send(transport: Transport, payload: Payload, target: &str) -> anyhow::Result<
             let node = ipc_schema::node(&format!("bench-ipc-send-{}", std::process::id()))?;
             let qos = Qos { history: 0, buffer: 4, max_publishers: 1, max_subscribers: 2 };
             // Give the peer's subscriber a moment to be seen by the publisher.
-            if payload == Payload::State {
-                let publisher = ipc_schema::open_or_create_pubsub::<RobotState>(&node, target, qos)?
-                    .publisher_builder()
-                    .create()?;
-                std::thread::sleep(Duration::from_millis(50));
-                let start = Instant::now();
-                for i in 0..count {
-                    pace(i, start);
-                    let s = publisher.loan_uninit()?;
-                    let s = s.write_payload(RobotState {
-                        seq: i as u64,
-                        published_ns: monotonic_ns(),
-                        ..Default::default()
-                    });
-                    s.send()?;
-                }
+            if payload == Payload::Command {
+                send_small::<JointCommand>(&node, target, qos, count, &pace)?;
+            } else if payload == Payload::State {
+                send_small::<RobotState>(&node, target, qos, count, &pace)?;
             } else {
                 let publisher = ipc_schema::open_or_create_pubsub::<CameraFrame>(&node, target, qos)?
                     .publisher_builder()
@@ -309,6 +397,21 @@ fn send(transport: Transport, payload: Payload, target: &str) -> anyhow::Result<
                     s.send()?;
                 }
             }
+        }
+        Transport::Zmq => {
+            let ctx = zmq::Context::new();
+            let sock = ctx.socket(zmq::PUSH)?;
+            sock.connect(target)?;
+            std::thread::sleep(Duration::from_millis(50));
+            let mut buf = vec![7u8; payload.bytes()];
+            let start = Instant::now();
+            for i in 0..count {
+                pace(i, start);
+                buf[..8].copy_from_slice(&monotonic_ns().to_ne_bytes());
+                sock.send(&buf[..], 0)?;
+            }
+            // Let the queue drain before the context closes.
+            std::thread::sleep(Duration::from_millis(200));
         }
         Transport::Uds | Transport::Tcp => {
             let mut stream: Box<dyn Write> = if transport == Transport::Uds {
@@ -336,6 +439,7 @@ fn send(transport: Transport, payload: Payload, target: &str) -> anyhow::Result<
 pub fn run(only: Option<&str>) -> anyhow::Result<Value> {
     let _ = cpus();
     let mut figures = serde_json::Map::new();
+    let mut cdfs = serde_json::Map::new();
     let mut rows = Vec::new();
     for transport in Transport::ALL {
         let mut t = serde_json::Map::new();
@@ -350,6 +454,8 @@ pub fn run(only: Option<&str>) -> anyhow::Result<Value> {
                 t.insert(format!("{}_{k}", payload.name()), json!(get(k)));
             }
             t.insert(format!("{}_msgs_per_s", payload.name()), json!(get("msgs_per_s")));
+            t.insert(format!("{}_received", payload.name()), f["received"].clone());
+            cdfs.insert(format!("{}.{}", transport.name(), payload.name()), f["cdf"].clone());
             rows.push(vec![
                 transport.name().to_string(),
                 payload.name().to_string(),
@@ -373,6 +479,9 @@ pub fn run(only: Option<&str>) -> anyhow::Result<Value> {
     }
     out["uds_over_iceoryx2_frame_p50"] = json!(f("uds", "frame_p50_us") / f("iceoryx2", "frame_p50_us"));
     out["uds_over_iceoryx2_rgbd_p50"] = json!(f("uds", "rgbd_p50_us") / f("iceoryx2", "rgbd_p50_us"));
+    out["zmq_over_iceoryx2_frame_p50"] = json!(f("zmq", "frame_p50_us") / f("iceoryx2", "frame_p50_us"));
     println!("{out}");
+    // The distributions (for plots) go to the caller, not onto the summary line.
+    out["cdf"] = Value::Object(cdfs);
     Ok(out)
 }

@@ -1,19 +1,31 @@
-//! `r2g bench tick`: wake latency and compute time of the real runtime (wall mode, sim-host
-//! stepping and rendering) against a bare clock_nanosleep loop with the same real-time setup.
+//! `r2g bench tick` / `r2g bench jitter`: wake latency and compute time of the real runtime
+//! (wall mode, sim-host stepping and rendering both cameras; for `jitter` also a Python agent
+//! polling get_state and posting chunks through `robo`) against a bare clock_nanosleep loop
+//! with the same real-time setup, in the same run.
 
 use std::time::Duration;
 
 use anyhow::{bail, Context};
 use ipc_schema::Mode;
 use runtime::launch::{self, Instance, UpOptions};
-use runtime::TickStats;
 use serde_json::{json, Value};
 
 fn flat(s: &Value, key: &str) -> f64 {
     s.pointer(key).and_then(Value::as_f64).unwrap_or(f64::NAN)
 }
 
-pub fn run(gym: &str, seconds: f64) -> anyhow::Result<Value> {
+/// The Python of the project's venv and the load script, if `make robo` has installed them.
+fn load_client() -> anyhow::Result<(std::path::PathBuf, std::path::PathBuf)> {
+    let root = launch::gyms_dir().parent().map(std::path::Path::to_path_buf).unwrap_or_default();
+    let python = root.join(".venv/bin/python");
+    let script = root.join("bench/py/load_client.py");
+    if !python.is_file() || !script.is_file() {
+        bail!("the agent load needs {} and {} (run `make robo`)", python.display(), script.display());
+    }
+    Ok((python, script))
+}
+
+pub fn run(gym: &str, seconds: f64, client: bool) -> anyhow::Result<Value> {
     if !(seconds.is_finite() && seconds > 0.0 && seconds <= 3600.0) {
         bail!("--seconds must be in (0, 3600]");
     }
@@ -27,17 +39,57 @@ pub fn run(gym: &str, seconds: f64) -> anyhow::Result<Value> {
         mode: Mode::Wall,
         render_hz: 10.0,
         control_args: vec![
+            // A few seconds more than the measured window, which starts once the instance is up.
             "--duration-s".into(),
-            seconds.to_string(),
+            (seconds + 3.0).to_string(),
             "--stats-out".into(),
             stats_path.display().to_string(),
         ],
         sim_args: Vec::new(),
         ready_timeout: Duration::from_secs(60),
     };
-    let mut inst = Instance::up(&opts)?;
-    let status = inst.wait_control(Duration::from_secs_f64(seconds + 60.0))?;
+    let load = if client { Some(load_client()?) } else { None };
+    // The bare loop runs beside the runtime over the same window (start-up included), under the
+    // same load, on the same CPU, at one FIFO priority above it: the runtime can never delay it,
+    // so it is the best wake-up this machine gives under this load.
+    let cpu = runtime::rt::last_cpu();
+    let window = Duration::from_secs_f64(seconds + 3.5);
+    let baseline = std::thread::spawn(move || {
+        let setup = runtime::rt::setup(Some(81), cpu);
+        let warning = setup.warning();
+        (runtime::baseline_loop(window, 1_000_000, 0).to_json(), warning)
+    });
+    let mut inst = match Instance::up(&opts) {
+        Ok(i) => i,
+        Err(e) => {
+            let _ = baseline.join();
+            return Err(e);
+        }
+    };
+    // The agent stops by itself when the runtime does.
+    let agent = match &load {
+        Some((python, script)) => Some(
+            std::process::Command::new(python)
+                .arg(script)
+                .arg(format!("{}", seconds + 5.0))
+                .env("R2G_INSTANCE", &inst.name)
+                .stdout(std::process::Stdio::piped())
+                .spawn()
+                .context("starting the Python agent load")?,
+        ),
+        None => None,
+    };
+    let (mut base, warning) = baseline.join().map_err(|_| anyhow::anyhow!("the baseline loop panicked"))?;
+    if let Some(w) = warning {
+        eprintln!("bench tick: {w}");
+    }
+    let status = inst.wait_control(Duration::from_secs_f64(seconds + 60.0));
+    let agent_figures = agent.and_then(|a| a.wait_with_output().ok()).map(|o| {
+        let text = String::from_utf8_lossy(&o.stdout).into_owned();
+        text.lines().last().and_then(|l| serde_json::from_str::<Value>(l).ok()).unwrap_or(json!({"error": text}))
+    });
     inst.stop();
+    let status = status?;
     if !status.success() {
         bail!("r2g-control ended with {status}");
     }
@@ -45,13 +97,6 @@ pub fn run(gym: &str, seconds: f64) -> anyhow::Result<Value> {
     let _ = std::fs::remove_file(&stats_path);
     let rt: Value = serde_json::from_str(&text)?;
 
-    eprintln!("bench tick: bare clock_nanosleep loop for {seconds} s...");
-    let setup = runtime::rt::setup(Some(80), runtime::rt::last_cpu());
-    if let Some(w) = setup.warning() {
-        eprintln!("bench tick: {w}");
-    }
-    let base: TickStats = runtime::baseline_loop(Duration::from_secs_f64(seconds), 1_000_000, 0);
-    let mut base = base.to_json();
     // The baseline does no work and runs without the counting allocator: no allocation figures.
     if let Some(o) = base.as_object_mut() {
         o.remove("tick_allocations");
@@ -111,7 +156,10 @@ pub fn run(gym: &str, seconds: f64) -> anyhow::Result<Value> {
         "runtime": summary(&rt),
         "baseline": summary(&base),
         "p999_ratio": flat(&rt, "/wake/p999_us") / flat(&base, "/wake/p999_us"),
+        "agent_load": agent_figures,
     });
     println!("{out}");
+    let mut out = out;
+    out["cdf"] = json!({"runtime": rt["wake"]["cdf"], "baseline": base["wake"]["cdf"]});
     Ok(out)
 }

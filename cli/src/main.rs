@@ -10,6 +10,7 @@ use ipc_schema::Mode;
 use runtime::launch::{self, Instance, UpOptions};
 
 mod author;
+mod bench_all;
 mod episode;
 mod kin;
 mod sim_bench;
@@ -129,8 +130,29 @@ enum BenchCmd {
         #[arg(long, default_value = "pick_block_plate")]
         gym: String,
     },
-    /// Publish→receive latency between two processes for a robot state, a 640×480 RGB frame
-    /// and an RGB-D frame, through iceoryx2 (zero-copy), a Unix domain socket and TCP loopback.
+    /// The same as `tick` under an agent's load: a Python program polls get_state (with both
+    /// PNG images) and posts joint chunks through `robo` the whole time.
+    Jitter {
+        #[arg(long, default_value_t = 60.0)]
+        seconds: f64,
+        #[arg(long, default_value = "pick_block_plate")]
+        gym: String,
+    },
+    /// Every benchmark in turn (ipc, jitter, tick-compute, ik, limiter-fuzz, sim), with a
+    /// progress bar; writes bench-report/ (summary.md, one JSON per benchmark, PNG plots).
+    All {
+        /// Seconds of the jitter run.
+        #[arg(long, default_value_t = 60.0)]
+        jitter_seconds: f64,
+        #[arg(long, default_value = "bench-report")]
+        out: std::path::PathBuf,
+        /// Small runs of everything (for checking the pipeline, not for figures).
+        #[arg(long)]
+        quick: bool,
+    },
+    /// Publish→receive latency between two processes for a robot state, a joint command, a
+    /// 640×480 RGB frame and an RGB-D frame, through iceoryx2 (zero-copy), a Unix domain socket,
+    /// TCP loopback and ZeroMQ.
     Ipc {
         /// Only the pairs whose "transport:payload" contains this (e.g. "uds", ":frame").
         #[arg(long)]
@@ -198,7 +220,11 @@ fn main() {
         Cmd::Kin { which: KinCmd::Fk { args } } => kin::run(false, &args.robot, &args.tcp, args.frame.as_deref()),
         Cmd::Kin { which: KinCmd::Ik { args } } => kin::run(true, &args.robot, &args.tcp, args.frame.as_deref()),
         Cmd::Bench { which: BenchCmd::Ik { targets, count } } => bench::ik::run(targets.as_deref(), count).map(|_| 0),
-        Cmd::Bench { which: BenchCmd::Tick { seconds, gym } } => bench::tick::run(&gym, seconds).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::Tick { seconds, gym } } => bench::tick::run(&gym, seconds, false).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::Jitter { seconds, gym } } => bench::tick::run(&gym, seconds, true).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::All { jitter_seconds, out, quick } } => {
+            bench_all::run(jitter_seconds, &out, quick).map(|_| 0)
+        }
         Cmd::Bench { which: BenchCmd::TickCompute { ticks } } => bench::control::tick_compute(ticks).map(|_| 0),
         Cmd::Bench { which: BenchCmd::LimiterFuzz { chunks, seed } } => {
             bench::control::limiter_fuzz(chunks, seed).map(|v| if v["violations"] == 0 { 0 } else { 1 })

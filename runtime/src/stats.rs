@@ -85,7 +85,18 @@ impl Histogram {
             "p99_us": self.quantile_us(0.99),
             "p999_us": self.quantile_us(0.999),
             "max_us": self.max_us(),
+            "cdf": self.cdf(),
         })
+    }
+
+    /// The distribution as `[latency µs, fraction at or below]` points, dense in the tail
+    /// (every percent, then 99.x and 99.9x), for plots.
+    pub fn cdf(&self) -> Vec<[f64; 2]> {
+        let mut ps: Vec<f64> = (1..=99).map(|k| k as f64 / 100.0).collect();
+        ps.extend((1..=9).map(|k| 0.99 + k as f64 / 1000.0));
+        ps.extend((1..=9).map(|k| 0.999 + k as f64 / 10_000.0));
+        ps.push(1.0);
+        ps.into_iter().map(|p| [self.quantile_us(p), p]).collect()
     }
 }
 
@@ -127,6 +138,9 @@ mod tests {
         assert!((h.quantile_us(0.5) - 500.1).abs() < 0.2, "{}", h.quantile_us(0.5));
         assert!((h.quantile_us(0.99) - 990.1).abs() < 0.2);
         assert_eq!(h.max_us(), 1000.0);
+        let cdf = h.cdf();
+        assert!(cdf.windows(2).all(|w| w[0][0] <= w[1][0] && w[0][1] < w[1][1]), "monotone");
+        assert_eq!(cdf.last().map(|p| p[0]), Some(1000.0));
         h.record(u64::MAX / 2);
         assert_eq!(h.count(), 1001);
     }

@@ -60,3 +60,47 @@ fn bench_ik_reports_solver_and_baselines() {
     // Either measured or explicitly absent with the reason.
     assert!(v["pinocchio"]["median_us"].as_f64().is_some() || v["pinocchio_note"].is_string(), "{v}");
 }
+
+#[test]
+fn bench_ipc_measures_zeromq_too() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let out =
+        Command::new(integration_tests::r2g()).args(["bench", "ipc", "--only", "zmq:command"]).output().expect("run");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v = last_json_line(&out.stdout);
+    assert!(v["zmq"]["command_p50_us"].as_f64().is_some_and(|x| x > 0.0), "{v}");
+    assert!(v["zmq"]["command_msgs_per_s"].as_f64().is_some_and(|x| x > 100.0), "{v}");
+}
+
+#[test]
+fn bench_all_writes_a_report_with_plots() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = std::env::temp_dir().join(format!("r2g-bench-report-{}", std::process::id()));
+    let out = Command::new(integration_tests::r2g())
+        .args(["bench", "all", "--quick", "--jitter-seconds", "3", "--out", dir.to_str().expect("utf8")])
+        .output()
+        .expect("run");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v = last_json_line(&out.stdout);
+    for k in ["iceoryx2.frame_p50_us", "uds.frame_p50_us", "zmq.frame_p50_us", "runtime.p999_us", "baseline.p999_us"] {
+        assert!(v[k].as_f64().is_some_and(|x| x > 0.0), "{k} missing: {v}");
+    }
+    assert!(v["runtime.overruns"].is_u64(), "{v}");
+    let summary = std::fs::read_to_string(dir.join("summary.md")).expect("summary.md");
+    assert!(summary.contains("| iceoryx2 | frame |") && summary.contains("| runtime |"), "{summary}");
+    // The Python agent really ran during the jitter run.
+    let jitter: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("jitter.json")).expect("jitter.json")).expect("json");
+    assert!(jitter["agent_load"]["get_state_numeric"].as_u64().is_some_and(|n| n > 0), "{jitter}");
+    for png in ["ipc_frame_cdf.png", "jitter_wake_cdf.png", "jitter_wake_hist.png"] {
+        let bytes = std::fs::read(dir.join(png)).unwrap_or_else(|e| panic!("{png}: {e}"));
+        assert!(bytes.starts_with(b"\x89PNG") && bytes.len() > 5000, "{png} is not a drawn PNG");
+    }
+    for name in ["ipc", "jitter", "tick_compute", "ik", "limiter_fuzz", "sim"] {
+        let j: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join(format!("{name}.json"))).expect("json"))
+                .expect("valid JSON");
+        assert!(j.get("error").is_none(), "{name} failed: {j}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
