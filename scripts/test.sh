@@ -8,9 +8,9 @@ ulimit -f $((4 * 1024 * 1024))   # 4 GiB per file, in KiB blocks
 export MUJOCO_GL=egl
 fail=0
 echo "== cargo test (unit and multi-process tests)"
-timeout 1800 cargo test --release --workspace --locked -- --test-threads=2 || fail=1
+timeout 1800 cargo test --release --workspace --locked --no-fail-fast -- --test-threads=2 || fail=1
 echo "== pyflakes"
-.venv/bin/python -m pyflakes demo tests/python || fail=1
+.venv/bin/python -m pyflakes demo tests/python bench || fail=1
 echo "== pytest (robo against live instances)"
 timeout 1200 .venv/bin/python -m pytest -q tests/python || fail=1
 exit $fail

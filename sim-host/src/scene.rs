@@ -583,8 +583,12 @@ fn one_line(text: &str, e: &toml::de::Error) -> String {
     let msg = e.message().trim().replace('\n', " ");
     match e.span() {
         Some(span) => {
-            let line = text[..span.start.min(text.len())].matches('\n').count() + 1;
-            format!("line {line}: {msg}")
+            let start = span.start.min(text.len());
+            let line = text[..start].matches('\n').count() + 1;
+            // The offending line itself names the field.
+            let source = text.lines().nth(line - 1).unwrap_or("").trim();
+            let source: String = source.chars().take(60).collect();
+            format!("line {line} ({source}): {msg}")
         }
         None => msg,
     }
