@@ -149,7 +149,7 @@ fn summary_md(r: &serde_json::Map<String, Value>, plots: &[String], errors: &[St
         total_s
     ));
     if let Some(ipc) = r.get("ipc") {
-        s.push_str("## IPC: publish → receive, one process per core (µs)\n\n| transport | payload | p50 | p99 | p99.9 | max | msgs/s |\n|---|---|---|---|---|---|---|\n");
+        s.push_str("## IPC: publish → receive, one process per core (µs)\n\n| transport | payload | p50 | p99 | p99.9 | max | msgs/s | received |\n|---|---|---|---|---|---|---|---|\n");
         for t in ["iceoryx2", "uds", "tcp", "zmq"] {
             for p in ["state", "command", "frame", "rgbd", "frame_burst"] {
                 let g = |k: &str| num(ipc, &format!("/{t}/{p}_{k}"));
