@@ -31,6 +31,7 @@ pub fn run(jitter_s: f64, out: &Path, quick: bool) -> anyhow::Result<Value> {
     let benches: Vec<Bench> = vec![
         ("ipc", Box::new(move || bench::ipc::run(ipc_only))),
         ("jitter", Box::new(move || bench::tick::run("pick_block_plate", jitter_s, true))),
+        ("tick", Box::new(move || bench::tick::run("pick_block_plate", (jitter_s / 6.0).max(3.0), false))),
         ("tick_compute", Box::new(move || bench::control::tick_compute(200_000 / n))),
         ("ik", Box::new(move || bench::ik::run(None, 10_000 / n as usize))),
         ("limiter_fuzz", Box::new(move || bench::control::limiter_fuzz(200_000 / n, 1))),

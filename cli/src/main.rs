@@ -138,7 +138,7 @@ enum BenchCmd {
         #[arg(long, default_value = "pick_block_plate")]
         gym: String,
     },
-    /// Every benchmark in turn (ipc, jitter, tick-compute, ik, limiter-fuzz, sim), with a
+    /// Every benchmark in turn (ipc, jitter, tick, tick-compute, ik, limiter-fuzz, sim), with a
     /// progress bar; writes bench-report/ (summary.md, one JSON per benchmark, PNG plots).
     All {
         /// Seconds of the jitter run.

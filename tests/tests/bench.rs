@@ -96,7 +96,7 @@ fn bench_all_writes_a_report_with_plots() {
         let bytes = std::fs::read(dir.join(png)).unwrap_or_else(|e| panic!("{png}: {e}"));
         assert!(bytes.starts_with(b"\x89PNG") && bytes.len() > 5000, "{png} is not a drawn PNG");
     }
-    for name in ["ipc", "jitter", "tick_compute", "ik", "limiter_fuzz", "sim"] {
+    for name in ["ipc", "jitter", "tick", "tick_compute", "ik", "limiter_fuzz", "sim"] {
         let j: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(dir.join(format!("{name}.json"))).expect("json"))
                 .expect("valid JSON");
