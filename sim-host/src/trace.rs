@@ -142,7 +142,14 @@ pub fn evaluate(scene: &Scene, trace: &Trace) -> Evaluation {
             None => fail("the trace is empty"),
             Some(s) => judge(scene, trace, s, c),
         };
-        checks.insert(c.label(), check);
+        // Two rules of the same kind on the same things must not hide each other.
+        let mut label = c.label();
+        let mut n = 1;
+        while checks.contains_key(&label) {
+            n += 1;
+            label = format!("{}#{n}", c.label());
+        }
+        checks.insert(label, check);
     }
     // Penetration beyond the limit must not persist for more than 0.1 s.
     let limit = scene.task.max_penetration_m;
@@ -310,5 +317,82 @@ fn judge(scene: &Scene, trace: &Trace, s: &Sample, c: &Criterion) -> Check {
             let ok = above.is_none_or(|a| v >= a) && below.is_none_or(|b| v <= b);
             Check { value: serde_json::json!(round(v)), pass: ok }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene_with(rules: &str) -> Scene {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let dir = std::env::temp_dir().join(format!("r2g-trace-unit-{}-{}", std::process::id(), rules.len()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let text = format!(
+            "name = \"t\"\ncameras = []\n[robot]\nurdf = \"{}\"\ninitial_joints_rad = [0.0, -0.78, 0.0, -2.35, 0.0, 1.57, 0.78]\n[[objects]]\nname = \"box\"\nshape = \"box\"\nsize_m = [0.02, 0.02, 0.02]\nposition_m = [0.5, 0.0, 0.02]\n[task]\nsuccess = [{rules}]\n",
+            root.join("robots/panda/panda.urdf").display()
+        );
+        std::fs::write(dir.join("scene.toml"), text).expect("write");
+        let s = Scene::load(&dir.join("scene.toml")).unwrap_or_else(|e| panic!("{e}"));
+        let _ = std::fs::remove_dir_all(&dir);
+        s
+    }
+
+    fn trace(zs: &[f64], penetration: &[f64]) -> Trace {
+        Trace {
+            gym: "t".into(),
+            owners: vec!["box".into(), "table".into(), "robot".into(), "floor".into()],
+            objects: vec!["box".into()],
+            finger_max_m: 0.04,
+            samples: zs
+                .iter()
+                .zip(penetration)
+                .enumerate()
+                .map(|(i, (&z, &p))| Sample {
+                    t_s: i as f64 * 0.01,
+                    objects: vec![[0.5, 0.0, z, 1.0, 0.0, 0.0, 0.0]],
+                    joints: vec![],
+                    tcp_m: [0.3, 0.0, 0.5],
+                    finger_m: 0.04,
+                    contacts: vec![],
+                    penetration_m: p,
+                    penetration_pair: [0, 2],
+                })
+                .collect(),
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn rules_with_the_same_label_are_all_reported() {
+        let scene = scene_with(
+            "{ kind = \"past\", object = \"box\", axis = 2, above = 0.1 }, { kind = \"past\", object = \"box\", axis = 2, below = 0.5 }",
+        );
+        let e = evaluate(&scene, &trace(&[0.02; 100], &[0.0; 100]));
+        assert!(!e.checks["past:box:z"].pass);
+        assert!(e.checks["past:box:z#2"].pass);
+        assert!(!e.success);
+    }
+
+    #[test]
+    fn penetration_fails_only_when_it_persists() {
+        let scene = scene_with("{ kind = \"past\", object = \"box\", axis = 2, above = 0.0 }");
+        let mut pen = vec![0.0; 100];
+        pen[10..15].fill(0.005); // 40 ms over the limit: allowed
+        assert!(evaluate(&scene, &trace(&[0.02; 100], &pen)).success);
+        pen[40..60].fill(0.005); // 190 ms over the limit: not allowed
+        let e = evaluate(&scene, &trace(&[0.02; 100], &pen));
+        assert!(!e.success && !e.checks["no_persistent_penetration"].pass, "{:?}", e.checks);
+    }
+
+    #[test]
+    fn stable_looks_at_the_final_window_only() {
+        let scene = scene_with("{ kind = \"stable\", objects = [\"box\"], duration_s = 0.3 }");
+        let mut z: Vec<f64> = (0..100).map(|i| 0.02 + 0.001 * i as f64).collect(); // moving 0.1 m/s
+        assert!(!evaluate(&scene, &trace(&z, &[0.0; 100])).success);
+        z[60..].fill(0.2); // at rest for the last 0.4 s
+        assert!(evaluate(&scene, &trace(&z, &[0.0; 100])).success);
+        // A trace shorter than the window cannot prove stability.
+        assert!(!evaluate(&scene, &trace(&[0.2; 10], &[0.0; 10])).success);
     }
 }
