@@ -3,7 +3,6 @@
 use std::io::Write;
 use std::time::Duration;
 
-use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
 use ipc_schema::process;
 use ipc_schema::Mode;
@@ -250,14 +249,10 @@ fn main() {
 }
 
 fn gyms() -> anyhow::Result<i32> {
-    let dir = launch::gyms_dir();
-    let mut names: Vec<String> = std::fs::read_dir(&dir)
-        .with_context(|| format!("reading {}", dir.display()))?
-        .filter_map(|e| e.ok())
-        .filter(|e| e.path().join("scene.toml").is_file())
-        .map(|e| e.file_name().to_string_lossy().into_owned())
-        .collect();
-    names.sort();
+    let names = launch::gym_names();
+    if names.is_empty() {
+        anyhow::bail!("no gyms found in {}", launch::gyms_dir().display());
+    }
     for n in names {
         println!("{n}");
     }

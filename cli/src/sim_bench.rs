@@ -4,7 +4,6 @@
 
 use std::time::Instant;
 
-use anyhow::Context;
 use ipc_schema::{ControlType, JointCommand, MAX_CHUNK};
 use serde_json::{json, Map, Value};
 use sim_host::render::Cameras;
@@ -17,19 +16,7 @@ fn median(v: &mut [f64]) -> f64 {
 }
 
 pub fn run(only: &[String], frames: usize) -> anyhow::Result<Value> {
-    let gyms: Vec<String> = if only.is_empty() {
-        let dir = runtime::launch::gyms_dir();
-        let mut g: Vec<String> = std::fs::read_dir(&dir)
-            .with_context(|| format!("reading {}", dir.display()))?
-            .filter_map(|e| e.ok())
-            .filter(|e| e.path().join("scene.toml").is_file())
-            .map(|e| e.file_name().to_string_lossy().into_owned())
-            .collect();
-        g.sort();
-        g
-    } else {
-        only.to_vec()
-    };
+    let gyms: Vec<String> = if only.is_empty() { runtime::launch::gym_names() } else { only.to_vec() };
     let mut per_gym = Map::new();
     println!("{:<18} {:>8} {:>14} {:>16} {:>8}", "gym", "sim s", "lockstep RTF", "physics-only RTF", "ratio");
     for gym in &gyms {

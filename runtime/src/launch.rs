@@ -45,6 +45,20 @@ fn checkout_dir(var: &str, name: &str) -> PathBuf {
     PathBuf::from(name)
 }
 
+/// The gyms of the pack: folders of `gyms/` that hold a `scene.toml`, sorted.
+pub fn gym_names() -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(gyms_dir())
+        .map(|d| {
+            d.filter_map(|e| e.ok())
+                .filter(|e| e.path().join("scene.toml").is_file())
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    names.sort();
+    names
+}
+
 /// Resolves a gym name, folder or scene file to a scene file.
 pub fn resolve_scene(gym: &str) -> anyhow::Result<PathBuf> {
     let p = PathBuf::from(gym);
@@ -58,14 +72,7 @@ pub fn resolve_scene(gym: &str) -> anyhow::Result<PathBuf> {
     if by_name.is_file() {
         return Ok(by_name);
     }
-    let known: Vec<String> = std::fs::read_dir(gyms_dir())
-        .map(|d| {
-            d.filter_map(|e| e.ok())
-                .filter(|e| e.path().join("scene.toml").is_file())
-                .map(|e| e.file_name().to_string_lossy().into_owned())
-                .collect()
-        })
-        .unwrap_or_default();
+    let known = gym_names();
     bail!(
         "no gym '{gym}': give a gym name ({}), a gym folder or a scene file",
         if known.is_empty() { "none found".into() } else { known.join(", ") }

@@ -69,16 +69,6 @@ pub struct Sim {
 /// Physics steps between two trace samples at the default 1 ms timestep (10 ms of sim time).
 const TRACE_PERIOD_S: f64 = 0.01;
 
-/// SplitMix64: a small, fixed pseudo-random sequence for augmentation.
-fn splitmix(state: &mut u64) -> f64 {
-    *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    let mut z = *state;
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^= z >> 31;
-    (z >> 11) as f64 / (1u64 << 53) as f64
-}
-
 fn id(model: &MjModel, kind: MjtObjBase, name: &str) -> Result<usize, SimError> {
     model.name_to_id(kind, name).ok_or_else(|| SimError::Missing(format!("{kind:?} '{name}'")))
 }
@@ -234,15 +224,15 @@ impl Sim {
         if self.seed == 0 {
             return;
         }
-        let mut rng = self.seed;
+        let mut rng = controllers::ik::SplitMix64::new(self.seed);
         let specs: Vec<(f64, f64)> = self.scene.objects.iter().map(|o| (o.jitter_xy_m, o.jitter_yaw_deg)).collect();
         let objects = self.layout.objects.clone();
         let qpos = self.qpos_mut();
         for ((xy, yaw), (_, free)) in specs.into_iter().zip(objects) {
             let (dx, dy, dyaw) = (
-                (2.0 * splitmix(&mut rng) - 1.0) * xy,
-                (2.0 * splitmix(&mut rng) - 1.0) * xy,
-                ((2.0 * splitmix(&mut rng) - 1.0) * yaw).to_radians(),
+                (2.0 * rng.next_f64() - 1.0) * xy,
+                (2.0 * rng.next_f64() - 1.0) * xy,
+                ((2.0 * rng.next_f64() - 1.0) * yaw).to_radians(),
             );
             let Some(a) = free else { continue };
             qpos[a] += dx;

@@ -8,6 +8,8 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use controllers::math;
+
 use crate::scene::{Criterion, Scene};
 
 /// One sample of the trace.
@@ -103,28 +105,15 @@ pub fn criteria_sha256(scene: &Scene) -> String {
     hex(&Sha256::digest(json.as_bytes()))
 }
 
-fn quat_rotate(q: [f64; 4], v: [f64; 3]) -> [f64; 3] {
-    // q = (w, x, y, z); v' = v + 2w(u×v) + 2u×(u×v)
-    let (w, u) = (q[0], [q[1], q[2], q[3]]);
-    let cross =
-        |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
-    let c1 = cross(u, v);
-    let c2 = cross(u, c1);
-    [v[0] + 2.0 * (w * c1[0] + c2[0]), v[1] + 2.0 * (w * c1[1] + c2[1]), v[2] + 2.0 * (w * c1[2] + c2[2])]
-}
-
-fn quat_conj(q: [f64; 4]) -> [f64; 4] {
-    [q[0], -q[1], -q[2], -q[3]]
+/// A quaternion stored (w, x, y, z), as MuJoCo and the trace keep it, in the (x, y, z, w)
+/// order of `controllers::math`.
+fn xyzw(q: [f64; 4]) -> math::Quat {
+    [q[1], q[2], q[3], q[0]]
 }
 
 /// World poses of the fixtures (they never move), for cavity checks: name → (pos, quat wxyz).
 fn fixture_pose(scene: &Scene, name: &str) -> Option<([f64; 3], [f64; 4])> {
-    scene.fixtures.iter().find(|f| f.name == name).map(|f| (f.position_m, normalised(f.quat_wxyz)))
-}
-
-fn normalised(q: [f64; 4]) -> [f64; 4] {
-    let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
-    [q[0] / n, q[1] / n, q[2] / n, q[3] / n]
+    scene.fixtures.iter().find(|f| f.name == name).map(|f| (f.position_m, f.quat_wxyz))
 }
 
 fn round(v: f64) -> f64 {
@@ -215,7 +204,11 @@ fn judge(scene: &Scene, trace: &Trace, s: &Sample, c: &Criterion) -> Check {
                         return missing(cn);
                     };
                     let d = [p[0] - frame.0[0], p[1] - frame.0[1], p[2] - frame.0[2]];
-                    (quat_rotate(quat_conj(frame.1), d), lo.unwrap_or([0.0; 3]), hi.unwrap_or([0.0; 3]))
+                    (
+                        math::rotate(math::conj(math::normalize(xyzw(frame.1))), d),
+                        lo.unwrap_or([0.0; 3]),
+                        hi.unwrap_or([0.0; 3]),
+                    )
                 }
                 None => (p, min_m.unwrap_or([0.0; 3]), max_m.unwrap_or([0.0; 3])),
             };
@@ -252,7 +245,7 @@ fn judge(scene: &Scene, trace: &Trace, s: &Sample, c: &Criterion) -> Check {
         Criterion::Upright { object, tolerance_deg } => {
             let Some(i) = trace.object(object) else { return missing(object) };
             let o = s.objects[i];
-            let z = quat_rotate([o[3], o[4], o[5], o[6]], [0.0, 0.0, 1.0]);
+            let z = math::rotate(xyzw([o[3], o[4], o[5], o[6]]), [0.0, 0.0, 1.0]);
             let tilt = z[2].clamp(-1.0, 1.0).acos().to_degrees();
             Check { value: serde_json::json!({"tilt_deg": round(tilt)}), pass: tilt <= *tolerance_deg }
         }

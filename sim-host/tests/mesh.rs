@@ -1,14 +1,14 @@
 //! Mesh objects: an OBJ file (relative to the scene) is compiled, collides through its convex
 //! hull and comes to rest on the table under native physics; a fixture's hinge holds its range.
 
+mod common;
+
 use ipc_schema::JointCommand;
 use sim_host::Sim;
 
 #[test]
 fn an_obj_mesh_falls_onto_the_table_and_rests_there() {
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let dir = std::env::temp_dir().join(format!("r2g-mesh-test-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
+    let dir = common::temp_dir("mesh-test");
     // A 4 cm cube as a triangle mesh.
     let mut obj = String::new();
     for v in 0..8 {
@@ -19,18 +19,11 @@ fn an_obj_mesh_falls_onto_the_table_and_rests_there() {
         obj.push_str(&format!("f {} {} {}\nf {} {} {}\n", f[0], f[1], f[2], f[0], f[2], f[3]));
     }
     std::fs::write(dir.join("cube.obj"), obj).expect("write obj");
-    let urdf = root.join("robots/panda/panda.urdf").canonicalize().expect("urdf");
     let scene = format!(
         r#"
 name = "mesh_test"
 cameras = []
-[robot]
-urdf = "{}"
-initial_joints_rad = [0.0, -0.7853982, 0.0, -2.3561945, 0.0, 1.5707963, 0.7853982]
-[table]
-top_center_m = [0.45, 0.0, 0.0]
-size_m = [1.3, 1.2]
-[[objects]]
+{}[[objects]]
 name = "cube"
 shape = "mesh"
 mesh = "cube.obj"
@@ -48,7 +41,7 @@ initial = 45.0
 mass_kg = 0.3
 parts = [{{ shape = "box", size_m = [0.005, 0.1, 0.1], position_m = [0.0, 0.1, 0.1] }}]
 "#,
-        urdf.display()
+        common::robot_and_table()
     );
     std::fs::write(dir.join("scene.toml"), scene).expect("write scene");
     let mut sim = Sim::load(&dir.join("scene.toml")).unwrap_or_else(|e| panic!("mesh scene: {e}"));

@@ -2,24 +2,17 @@
 //! reads 1 m everywhere (planar depth, not ray length), a block's top reads 1 m less its height,
 //! and the block's edge lands on the pixel the intrinsics predict.
 
+mod common;
+
 use sim_host::render::{intrinsics, Cameras};
 use sim_host::Sim;
 
 fn scene() -> std::path::PathBuf {
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let dir = std::env::temp_dir().join(format!("r2g-render-test-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let urdf = root.join("robots/panda/panda.urdf").canonicalize().expect("urdf");
+    let dir = common::temp_dir("render-test");
     let text = format!(
         r#"
 name = "render_test"
-[robot]
-urdf = "{}"
-initial_joints_rad = [0.0, -0.7853982, 0.0, -2.3561945, 0.0, 1.5707963, 0.7853982]
-[table]
-top_center_m = [0.45, 0.0, 0.0]
-size_m = [1.3, 1.2]
-[[cameras]]
+{}[[cameras]]
 name = "down"
 position_m = [0.6, 0.0, 1.0]
 look_at_m = [0.6, 0.0, 0.0]
@@ -32,7 +25,7 @@ size_m = [0.05, 0.05, 0.05]
 position_m = [0.6, 0.0, 0.05]
 free = false
 "#,
-        urdf.display()
+        common::robot_and_table()
     );
     let p = dir.join("scene.toml");
     std::fs::write(&p, text).expect("write scene");

@@ -1,23 +1,17 @@
 //! Malformed scene files: each gives a one-line error naming the file, the field and what is
 //! accepted, and never a panic.
 
-use std::path::{Path, PathBuf};
+mod common;
+
+use std::path::PathBuf;
 
 use sim_host::Scene;
 
 fn base() -> String {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let urdf = root.join("robots/panda/panda.urdf").canonicalize().expect("urdf");
     format!(
         r#"
 name = "broken"
-[robot]
-urdf = "{}"
-initial_joints_rad = [0.0, -0.7853982, 0.0, -2.3561945, 0.0, 1.5707963, 0.7853982]
-[table]
-top_center_m = [0.45, 0.0, 0.0]
-size_m = [1.3, 1.2]
-[[cameras]]
+{}[[cameras]]
 name = "agentview"
 position_m = [1.4, 0.0, 0.95]
 look_at_m = [0.3, 0.0, 0.18]
@@ -41,14 +35,12 @@ parts = [{{ shape = "box", size_m = [0.05, 0.05, 0.01] }}]
 instruction = "Open the drawer."
 success = [{{ kind = "joint", fixture = "drawer", min = 0.1 }}]
 "#,
-        urdf.display()
+        common::robot_and_table()
     )
 }
 
 fn write(name: &str, text: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("r2g-scene-errors-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    let p = dir.join("scene.toml");
+    let p = common::temp_dir(&format!("scene-errors-{name}")).join("scene.toml");
     std::fs::write(&p, text).expect("write");
     p
 }
