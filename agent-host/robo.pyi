@@ -1,27 +1,42 @@
 """Type stubs of `robo`, the agent-facing robot API of the Real2Gym runtime.
 
-Generated code uses only ``from robo import reset, get_state, post_actions``. See
+Generated code uses only ``from robo import reset, get_state, post_actions``. Units are SI
+(rad, m, s, N); poses are the TCP in the robot base frame, ``[x, y, z, ax, ay, az]`` with an
+axis-angle rotation; the gripper is one number, -1 open ... +1 closed. See
 robot-skill/api/README.md for the full contract.
 """
-from typing import Literal, Mapping, Sequence, TypedDict, Union
+from typing import Literal, Mapping, Optional, Sequence, TypedDict, Union, overload
+
+import numpy as np
+import numpy.typing as npt
 
 SCHEMA_VERSION: int
+"""Version of the interface (integer)."""
 
 Status = Literal[
-    "accepted", "executed", "rejected", "failed", "recovered_replan_required", "operator_required", "none"
+    "none", "accepted", "executed", "rejected", "failed", "recovered_replan_required", "operator_required"
 ]
 
 class ControlFeedback(TypedDict):
+    """Outcome of this process's last reset() or post_actions()."""
+
     status: Status
-    """What became of the last request."""
+    """"none" before this process sent anything; see robot-skill/api/README.md for each status."""
     reason: str
-    """Why, in words a model can act on (which field, which limit, by how much); "" on success."""
+    """Why, naming the field, waypoint, limit and excess; "" when nothing went wrong."""
     executed: int
-    """Waypoints fully executed."""
+    """Waypoints completed."""
     request_id: int
     final_joint_error_rad: float
+    """Largest joint distance from the last target when the chunk ended."""
+    submit_to_accept_us: Optional[float]
+    """Microseconds from submission until the runtime accepted the chunk; None if not accepted."""
+    submit_to_first_motion_us: Optional[float]
+    """Microseconds from submission until measured motion began; None if the arm did not move."""
 
 class Intrinsics(TypedDict):
+    """Pinhole intrinsics in pixels, for the image size actually returned."""
+
     fx: float
     fy: float
     cx: float
@@ -29,59 +44,133 @@ class Intrinsics(TypedDict):
     width: int
     height: int
 
-class EffectiveSafety(TypedDict, total=False):
+class EffectiveSafety(TypedDict):
+    """Limits in force now; they win over config/robot.json."""
+
+    profile: Literal["simulation", "franka"]
     joint_position_min_rad: list[float]
     joint_position_max_rad: list[float]
     joint_position_margin_rad: float
+    """Targets must stay this far inside the joint limits."""
     joint_velocity_max_rad_s: list[float]
     joint_acceleration_max_rad_s2: list[float]
     speed_scale: float
+    """Fraction of the velocity limits motion may use."""
     max_chunk_len: int
+    max_joint_step_rad: float
+    """Largest change of any joint between consecutive waypoints (and from the measured pose to
+    the first one) in a joint chunk."""
+    max_tcp_step_m: float
+    """Largest TCP move per step in an ee_pose chunk."""
+    max_tcp_step_rad: float
+    """Largest TCP turn per step in an ee_pose chunk."""
     default_freq_hz: float
     tick_period_s: float
+    workspace_min_m: Optional[list[float]]
+    """Lower corner of the base-frame box the TCP and arm must stay in; None if the scene sets none."""
+    workspace_max_m: Optional[list[float]]
+    collision_margin_m: float
+    reflex_force_n: Optional[float]
+    """Franka: force above which (after >5 N growth during the chunk) the arm stops; None in simulation."""
+    operator_force_n: Optional[float]
+    """Franka: force above which the arm faults until a person clears it; None in simulation."""
 
-class State(TypedDict):
+class _StateBase(TypedDict):
     joint: list[float]
-    """7 joint positions, rad."""
+    """7 measured joint positions, rad."""
     ee_pose: list[float]
-    """TCP in the robot base frame: x, y, z (m), then axis-angle ax, ay, az (rad)."""
+    """Measured TCP in the robot base frame: x, y, z (m), then axis-angle ax, ay, az (rad)."""
     gripper: list[float]
-    """One value: -1 open ... +1 closed."""
-    timestamp: float
-    """Time of the state, s (simulated time in lockstep mode)."""
+    """One measured value: -1 open ... +1 closed. Short of +1 after closing: something is held."""
     joint_velocity: list[float]
-    backend: str
+    """7 measured joint velocities, rad/s."""
+    timestamp: float
+    """Time of the state, s (simulated time in simulation)."""
+    external_force_n: list[float]
+    """Net contact force the environment exerts on the robot, [fx, fy, fz] in N, base frame,
+    low-pass filtered over about 20 ms. The Franka reflexes watch its magnitude."""
+    fault: Optional[str]
+    """None, or the reason while the arm is in an operator-required fault (Franka)."""
+    backend: Literal["simulation", "franka"]
     mode: Literal["wall", "lockstep"]
-    control_type: Union[Literal["joint", "ee_pose"], None]
-    """The control type fixed for this episode, once the first chunk was accepted."""
-    image: dict[str, bytes]
-    """PNG bytes per requested camera."""
+    control_type: Optional[Literal["joint", "ee_pose"]]
+    """Simulation: the type fixed for this episode by its first accepted chunk (None before)."""
     image_timestamp: dict[str, float]
     camera_intrinsics: dict[str, Intrinsics]
     camera_extrinsics: dict[str, list[list[float]]]
-    """4x4 base_from_camera per camera; the optical frame has x right, y down, z forward."""
+    """4x4 base_from_camera per camera; optical frame x right, y down, z forward. The wrist
+    camera's matrix follows the arm."""
     control_feedback: ControlFeedback
     effective_safety: EffectiveSafety
 
-CameraSelection = Union[None, str, Sequence[str], Mapping[str, tuple[int, int]]]
+class State(_StateBase):
+    """get_state() with raw=False."""
 
-class Actions(TypedDict):
-    actions: Sequence[Sequence[float]]
-    """joint: [q1..q7, g] (rad); ee_pose: [x, y, z, ax, ay, az, g] (m, rad); absolute targets."""
+    image: dict[str, bytes]
+    """PNG bytes (RGB, 8 bit) per requested camera."""
+
+class RawState(_StateBase):
+    """get_state(..., raw=True)."""
+
+    image: dict[str, npt.NDArray[np.uint8]]
+    """(height, width, 3) RGB per camera. At the native size: a read-only view into shared
+    memory (copy with np.array(a) to write); resized requests are copies."""
+    depth: dict[str, npt.NDArray[np.float32]]
+    """(height, width) planar depth in m along the optical axis, only for cameras that render
+    depth. Pixel (u, v) = array[v, u] with depth d is the camera point
+    ((u - cx) * d / fx, (v - cy) * d / fy, d)."""
+
+CameraSelection = Union[None, str, Sequence[str], Mapping[str, tuple[int, int]]]
+"""None: all cameras; a name; a list of names; {name: (width, height)} resized, 1..4096 each;
+[]: numeric state only (about 10 us)."""
+
+class _ActionsRequired(TypedDict):
+    actions: list[list[float]]
+    """joint: [q1..q7, g] (rad); ee_pose: [x, y, z, ax, ay, az, g] (TCP in base frame, m, rad).
+    Absolute targets, plain lists of numbers."""
     type: Literal["joint", "ee_pose"]
+
+class Actions(_ActionsRequired, total=False):
     freq: Union[str, float, int]
-    """"" for 20 Hz, or an upper bound on the waypoint rate in Hz."""
+    """"" or omitted: 20 Hz. A number (or numeric string) 0.5..1000: upper bound on the waypoint
+    rate in Hz; motion is still slowed to speed_scale x the joint velocity limits."""
 
 def reset() -> int:
-    """Restores the scene (simulation profile). 1 on success, 0 on failure (see control_feedback)."""
+    """Simulation: restores the robot and the objects and starts a new episode (frees the
+    control type). Franka: only refreshes the observation, moves nothing, clears no fault.
+    Returns 1 on success, 0 on failure (see control_feedback)."""
 
-def get_state(cameras: CameraSelection = None) -> State:
-    """Observes the robot. cameras: None (all), a name, a list of names, a dict
-    name -> (width, height), or [] (numeric state only)."""
+@overload
+def get_state(cameras: CameraSelection = None, raw: Literal[False] = False) -> State:
+    """Observes the robot. cameras: None (all cameras), a name, a list of names, a dict
+    name -> (width, height), or [] (numeric state only). Images are PNG bytes; they show the
+    scene after the last post_actions/reset finished. Raises TypeError for a wrong cameras type,
+    ValueError for an unknown camera or a bad size, ConnectionError when no runtime answers."""
+
+@overload
+def get_state(cameras: CameraSelection, raw: Literal[True]) -> RawState:
+    """As above, but images are numpy uint8 (h, w, 3) RGB arrays and "depth" holds float32
+    (h, w) planar depth in m. Native-size arrays are read-only views into shared memory."""
+
+@overload
+def get_state(cameras: CameraSelection = None, *, raw: Literal[True]) -> RawState: ...
+
+@overload
+def get_state(cameras: CameraSelection = None, raw: bool = False) -> Union[State, RawState]: ...
 
 def post_actions(cmd: Actions) -> int:
-    """Executes a chunk of absolute targets and blocks until it finished: 1 executed, 0 rejected
-    or failed (the reason is in get_state()["control_feedback"]). Never clipped into acceptance."""
+    """Executes a chunk of absolute targets and blocks until it has executed or failed.
+
+    Returns 1 when executed (the motion ran; not proof the task step worked) and 0 when rejected
+    or failed; the reason is in get_state([])["control_feedback"]. Every waypoint step (and the
+    step from the measured pose to the first one) must stay within max_joint_step_rad (joint) or
+    max_tcp_step_m / max_tcp_step_rad (ee_pose). Nothing is clipped into acceptance; a rejected
+    chunk moved nothing.
+
+    Raises TypeError (and records it as rejected) when cmd is not a dict, has an unknown key,
+    lacks "actions" or "type", "type" is not a string, "freq" is neither a string nor a number,
+    or "actions" is not a list of lists of numbers. Other bad commands return 0 without raising.
+    """
 
 def instance() -> str:
-    """The instance this process talks to (R2G_INSTANCE, default "default")."""
+    """The runtime instance this process talks to (R2G_INSTANCE, default "default")."""

@@ -1,6 +1,7 @@
 //! The Rust core of `robo`: connects to one instance's services and implements reset,
 //! observation and chunk execution. The pyo3 layer only converts to and from Python.
 
+use std::rc::{Rc, Weak};
 use std::time::{Duration, Instant};
 
 use iceoryx2::port::listener::Listener;
@@ -49,6 +50,10 @@ pub struct Feedback {
     pub executed: u32,
     pub request_id: u64,
     pub final_joint_error_rad: f64,
+    /// Submission → acceptance by the runtime, µs.
+    pub accepted_us: Option<f64>,
+    /// Submission → first measured motion, µs.
+    pub first_motion_us: Option<f64>,
 }
 
 impl Default for Feedback {
@@ -59,7 +64,32 @@ impl Default for Feedback {
             executed: 0,
             request_id: 0,
             final_joint_error_rad: 0.0,
+            accepted_us: None,
+            first_motion_us: None,
         }
+    }
+}
+
+/// Frames of one camera a subscriber may hold at once (see [`Qos::CAMERA`]).
+const BORROWED: usize = Qos::CAMERA.borrowed;
+
+/// One camera's subscription and the frames handed out from it.
+struct Camera {
+    name: String,
+    sub: Subscriber<S, CameraFrame, ()>,
+    /// The newest frame received.
+    last: Option<Rc<Frame>>,
+    /// Every frame received that may still be alive (held by `last` or by views in Python).
+    issued: Vec<Weak<Frame>>,
+    /// The last PNG encoded: frame seq, width, height, bytes. An idle scene is encoded once.
+    png: Option<(u64, u32, u32, Rc<Vec<u8>>)>,
+}
+
+impl Camera {
+    /// Distinct frames of this camera still borrowed from shared memory.
+    fn alive(&mut self) -> usize {
+        self.issued.retain(|w| w.strong_count() > 0);
+        self.issued.len()
     }
 }
 
@@ -78,6 +108,11 @@ impl Frame {
         let f: &CameraFrame = &self.sample;
         &f.rgb[..(f.width * f.height * 3) as usize]
     }
+    /// The used part of the depth buffer (metres, planar), read in place; None without depth.
+    pub fn depth(&self) -> Option<&[f32]> {
+        let f: &CameraFrame = &self.sample;
+        (f.has_depth == 1).then(|| &f.depth_m[..(f.width * f.height) as usize])
+    }
 }
 
 pub struct Client {
@@ -89,15 +124,18 @@ pub struct Client {
     reply_sub: Subscriber<S, Reply, ()>,
     control_wake: Notifier<S>,
     agent_wake: Listener<S>,
-    cameras: Vec<(String, Subscriber<S, CameraFrame, ()>)>,
-    last_frames: Vec<Option<Sample<S, CameraFrame, ()>>>,
+    cameras: Vec<Camera>,
     client_id: u64,
     next_id: u64,
     pub last_state: Option<RobotState>,
     pub info: Option<RuntimeInfo>,
     pub feedback: Feedback,
-    /// Gripper value of the last command, for holding it during arm-only moves.
     last_state_at: Instant,
+    /// Simulated time at which the last request finished: images must show the scene from then
+    /// on, never mid-motion.
+    settled_s: f64,
+    /// CLOCK_MONOTONIC when the last chunk was sent, ns.
+    submitted_ns: u64,
 }
 
 impl Client {
@@ -162,15 +200,14 @@ impl Client {
         let mut cameras = Vec::new();
         for i in 0..(sim_info.camera_count as usize).min(ipc_schema::MAX_CAMERAS) {
             let name = sim_info.camera_name(i).to_string();
-            let qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 8 };
+            let qos = Qos::CAMERA;
             let sub = ipc_schema::open_or_create_pubsub::<CameraFrame>(&node, &services.camera(&name), qos)
                 .map_err(open)?
                 .subscriber_builder()
                 .create()
                 .map_err(ipc("camera subscriber"))?;
-            cameras.push((name, sub));
+            cameras.push(Camera { name, sub, last: None, issued: Vec::new(), png: None });
         }
-        let n = cameras.len();
         let mut c = Self {
             instance: instance.into(),
             node,
@@ -181,20 +218,27 @@ impl Client {
             control_wake,
             agent_wake,
             cameras,
-            last_frames: (0..n).map(|_| None).collect(),
             client_id: ((pid as u64) << 32) ^ (ipc_schema::monotonic_ns() & 0xffff_ffff),
             next_id: 1,
             last_state: None,
             info: None,
             feedback: Feedback::default(),
             last_state_at: Instant::now(),
+            settled_s: 0.0,
+            submitted_ns: 0,
         };
         c.refresh_state(Duration::from_secs(3))?;
+        // The limits in force: the runtime resends them at least every 200 ms.
+        let t0 = Instant::now();
+        while c.info.is_none() && t0.elapsed() < Duration::from_secs(2) {
+            std::thread::sleep(Duration::from_millis(5));
+            c.refresh_state(Duration::from_secs(1))?;
+        }
         Ok(c)
     }
 
     pub fn camera_names(&self) -> Vec<String> {
-        self.cameras.iter().map(|c| c.0.clone()).collect()
+        self.cameras.iter().map(|c| c.name.clone()).collect()
     }
 
     /// Takes the newest robot state, waiting up to `wait` for a first one.
@@ -223,10 +267,10 @@ impl Client {
         }
     }
 
-    /// The newest frame of a camera showing the scene at or after `not_before_s` (sim time);
-    /// falls back to the newest frame after `wait`.
-    pub fn frame(&mut self, name: &str, not_before_s: f64, wait: Duration) -> Result<Frame, RoboError> {
-        let Some(i) = self.cameras.iter().position(|c| c.0 == name) else {
+    /// The newest frame of a camera showing the scene after the last request finished; falls
+    /// back to the newest frame after `wait` (rendering lags or is off).
+    pub fn frame(&mut self, name: &str, wait: Duration) -> Result<Rc<Frame>, RoboError> {
+        let Some(i) = self.cameras.iter().position(|c| c.name == name) else {
             let known = if self.cameras.is_empty() {
                 "no cameras".to_string()
             } else {
@@ -234,17 +278,20 @@ impl Client {
             };
             return Err(RoboError::UnknownCamera { name: name.into(), known });
         };
+        let not_before_s = self.settled_s;
         let t0 = Instant::now();
         loop {
-            while let Some(s) = self.cameras[i].1.receive().map_err(ipc("camera frame"))? {
-                // Release the older sample before holding the newer one.
-                self.last_frames[i] = None;
-                self.last_frames[i] = Some(s);
+            let cam = &mut self.cameras[i];
+            // Receive only while another frame can still be borrowed: programs may hold views.
+            while cam.alive() < BORROWED {
+                let Some(s) = cam.sub.receive().map_err(ipc("camera frame"))? else { break };
+                let f = Rc::new(Frame { name: cam.name.clone(), sample: s });
+                cam.issued.push(Rc::downgrade(&f));
+                cam.last = Some(f);
             }
-            if let Some(f) = &self.last_frames[i] {
-                if f.sim_time_s >= not_before_s - 1e-9 || t0.elapsed() >= wait {
-                    let sample = self.last_frames[i].take().ok_or_else(|| RoboError::NoFrame(name.into(), 0.0))?;
-                    return Ok(Frame { name: name.into(), sample });
+            if let Some(f) = &cam.last {
+                if f.header().sim_time_s >= not_before_s - 1e-9 || t0.elapsed() >= wait {
+                    return Ok(f.clone());
                 }
             } else if t0.elapsed() >= wait {
                 return Err(RoboError::NoFrame(name.into(), wait.as_secs_f64()));
@@ -253,13 +300,39 @@ impl Client {
         }
     }
 
-    /// Puts a frame back so a later call can reuse it if nothing newer arrives.
-    pub fn give_back(&mut self, frame: Frame) {
-        if let Some(i) = self.cameras.iter().position(|c| c.0 == frame.name) {
-            if self.last_frames[i].is_none() {
-                self.last_frames[i] = Some(frame.sample);
-            }
+    /// `frame` as PNG at `width` × `height` (resized if needed), encoded once per frame and size.
+    pub fn png(&mut self, frame: &Frame, width: u32, height: u32) -> Result<Rc<Vec<u8>>, RoboError> {
+        let h = frame.header();
+        let cam = self.cameras.iter_mut().find(|c| c.name == frame.name);
+        if let Some((_, _, _, png)) =
+            cam.as_ref().and_then(|c| c.png.as_ref()).filter(|p| (p.0, p.1, p.2) == (h.seq, width, height))
+        {
+            return Ok(png.clone());
         }
+        let encoded = if (width, height) == (h.width, h.height) {
+            crate::image::encode_png(frame.rgb(), width, height)
+        } else {
+            crate::image::encode_png(
+                &crate::image::resize_rgb(frame.rgb(), h.width, h.height, width, height),
+                width,
+                height,
+            )
+        }
+        .map_err(|e| RoboError::Ipc(format!("PNG encoding of '{}' failed: {e}", frame.name)))?;
+        let png = Rc::new(encoded);
+        if let Some(c) = cam {
+            c.png = Some((h.seq, width, height, png.clone()));
+        }
+        Ok(png)
+    }
+
+    /// Whether a program may keep `frame` as a view into shared memory: true while this camera
+    /// has room for it and for receiving the next frame; otherwise the caller copies.
+    pub fn may_borrow(&mut self, frame: &Rc<Frame>) -> bool {
+        let Some(cam) = self.cameras.iter_mut().find(|c| c.name == frame.name) else { return false };
+        let alive = cam.alive();
+        let held_elsewhere = alive - usize::from(cam.last.as_ref().is_some_and(|l| Rc::ptr_eq(l, frame)));
+        held_elsewhere < BORROWED - 2
     }
 
     fn send(&mut self, fill: impl FnOnce(&mut Request)) -> Result<u64, RoboError> {
@@ -281,12 +354,17 @@ impl Client {
         Ok(id)
     }
 
-    /// Waits for the reply to request `id`; watches the runtime's liveness meanwhile.
+    /// Waits for the final reply to request `id` (an `accepted` one is noted on the way);
+    /// watches the runtime's liveness meanwhile.
     fn wait_reply(&mut self, id: u64, timeout: Duration) -> Result<Reply, RoboError> {
         let t0 = Instant::now();
         loop {
             while let Some(r) = self.reply_sub.receive().map_err(ipc("reply"))? {
                 if r.id == id && r.client == self.client_id {
+                    if r.status == Status::Accepted as u32 {
+                        self.finish(*r);
+                        continue;
+                    }
                     return Ok(*r);
                 }
             }
@@ -306,14 +384,28 @@ impl Client {
 
     fn finish(&mut self, reply: Reply) -> i32 {
         let status = Status::from_u32(reply.status).unwrap_or(Status::Failed);
+        let since = |ns: u64| (ns > 0).then(|| ns.saturating_sub(self.submitted_ns) as f64 * 1e-3);
+        let mut reason = reply.reason_str().to_string();
+        if status == Status::OperatorRequired {
+            reason.push_str(&format!(" (an operator clears it with `r2g clear --instance {}`)", self.instance));
+        }
         self.feedback = Feedback {
             status: status.name(),
-            reason: reply.reason_str().to_string(),
+            reason,
             executed: reply.executed,
             request_id: reply.id,
             final_joint_error_rad: reply.final_joint_error_rad,
+            accepted_us: since(reply.accepted_ns),
+            first_motion_us: since(reply.first_motion_ns),
         };
         i32::from(status == Status::Executed)
+    }
+
+    /// The request finished: images from now on must show the scene after it.
+    fn settle(&mut self) -> Result<(), RoboError> {
+        let s = self.refresh_state(Duration::from_secs(2))?;
+        self.settled_s = s.timestamp_s;
+        Ok(())
     }
 
     /// Records a rejection that never left this process.
@@ -324,6 +416,8 @@ impl Client {
             executed: 0,
             request_id: 0,
             final_joint_error_rad: 0.0,
+            accepted_us: None,
+            first_motion_us: None,
         };
         0
     }
@@ -332,11 +426,11 @@ impl Client {
         let id = self.send(|r| r.kind = RequestKind::Reset as u32)?;
         let reply = self.wait_reply(id, Duration::from_secs(30))?;
         let ok = self.finish(reply);
-        // Drop frames from before the reset.
-        for f in &mut self.last_frames {
-            *f = None;
+        // Frames from before the reset are no longer the newest worth keeping.
+        for c in &mut self.cameras {
+            c.last = None;
         }
-        self.refresh_state(Duration::from_secs(2))?;
+        self.settle()?;
         Ok(ok)
     }
 
@@ -347,10 +441,14 @@ impl Client {
         freq_hz: f64,
         actions: &[[f64; WAYPOINT_LEN]],
     ) -> Result<i32, RoboError> {
-        if actions.len() > MAX_CHUNK {
-            return Ok(self
-                .reject_locally(format!("actions has {} waypoints, at most {MAX_CHUNK} are accepted", actions.len())));
+        let max = self.info.map_or(MAX_CHUNK, |i| (i.max_chunk as usize).clamp(1, MAX_CHUNK));
+        if actions.len() > max {
+            return Ok(self.reject_locally(format!(
+                "actions has {} waypoints, at most {max} are accepted: split the chunk",
+                actions.len()
+            )));
         }
+        self.submitted_ns = ipc_schema::monotonic_ns();
         let id = self.send(|r| {
             r.kind = RequestKind::Chunk as u32;
             r.control_type = control as u32;
@@ -362,7 +460,9 @@ impl Client {
         // The runtime caps a chunk's duration; this only bounds the wait if it never answers.
         let nominal_s = (actions.len() as f64 / f).clamp(0.0, 600.0);
         let reply = self.wait_reply(id, Duration::from_secs_f64(60.0 + 4.0 * nominal_s))?;
-        Ok(self.finish(reply))
+        let ok = self.finish(reply);
+        self.settle()?;
+        Ok(ok)
     }
 
     pub fn node_name(&self) -> String {

@@ -40,6 +40,21 @@ pub fn resize_rgb(src: &[u8], sw: u32, sh: u32, dw: u32, dh: u32) -> Vec<u8> {
     out
 }
 
+/// Nearest-neighbour resize of a depth plane: interpolating across an object's edge would
+/// invent depths that exist nowhere in the scene.
+pub fn resize_depth(src: &[f32], sw: u32, sh: u32, dw: u32, dh: u32) -> Vec<f32> {
+    let (sw, sh, dw, dh) = (sw as usize, sh as usize, dw as usize, dh as usize);
+    let mut out = Vec::with_capacity(dw * dh);
+    for y in 0..dh {
+        let sy = ((y * 2 + 1) * sh / (dh * 2)).min(sh - 1);
+        for x in 0..dw {
+            let sx = ((x * 2 + 1) * sw / (dw * 2)).min(sw - 1);
+            out.push(src[sy * sw + sx]);
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -63,5 +78,13 @@ mod tests {
         let out = resize_rgb(&src, 8, 6, 3, 2);
         assert_eq!(out.len(), 3 * 2 * 3);
         assert!(out.chunks(3).all(|p| p == [10, 20, 30]));
+    }
+
+    #[test]
+    fn depth_resizes_by_nearest_neighbour_without_inventing_depths() {
+        // A 4x2 plane with an edge between 1 m and 2 m: halving keeps only those two values.
+        let src = [1.0, 1.0, 2.0, 2.0, 1.0, 1.0, 2.0, 2.0];
+        assert_eq!(super::resize_depth(&src, 4, 2, 2, 1), vec![1.0, 2.0]);
+        assert_eq!(super::resize_depth(&src, 4, 2, 8, 2).len(), 16);
     }
 }

@@ -220,7 +220,7 @@ pub fn peer(transport: Transport, payload: Payload, addr: &str, cpu: usize) -> a
     match transport {
         Transport::Iceoryx2 => {
             let node = ipc_schema::node(&format!("bench-ipc-peer-{}", std::process::id()))?;
-            let qos = Qos { history: 0, buffer: 4, max_publishers: 1, max_subscribers: 2 };
+            let qos = Qos { history: 0, buffer: 4, max_publishers: 1, max_subscribers: 2, borrowed: 2 };
             if payload == Payload::Command {
                 receive_small::<JointCommand>(&node, addr, qos, count, deadline, &mut rec)?;
             } else if payload == Payload::State {
@@ -369,7 +369,7 @@ fn send(transport: Transport, payload: Payload, target: &str) -> anyhow::Result<
     match transport {
         Transport::Iceoryx2 => {
             let node = ipc_schema::node(&format!("bench-ipc-send-{}", std::process::id()))?;
-            let qos = Qos { history: 0, buffer: 4, max_publishers: 1, max_subscribers: 2 };
+            let qos = Qos { history: 0, buffer: 4, max_publishers: 1, max_subscribers: 2, borrowed: 2 };
             // Give the peer's subscriber a moment to be seen by the publisher.
             if payload == Payload::Command {
                 send_small::<JointCommand>(&node, target, qos, count, &pace)?;

@@ -3,6 +3,7 @@
 pub mod control;
 pub mod ik;
 pub mod ipc;
+pub mod robo;
 pub mod tick;
 
 /// Prints a table: a header row and rows of cells, columns padded to fit.

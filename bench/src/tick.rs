@@ -14,13 +14,13 @@ fn flat(s: &Value, key: &str) -> f64 {
     s.pointer(key).and_then(Value::as_f64).unwrap_or(f64::NAN)
 }
 
-/// The Python of the project's venv and the load script, if `make robo` has installed them.
-fn load_client() -> anyhow::Result<(std::path::PathBuf, std::path::PathBuf)> {
+/// The Python of the project's venv and one of its bench scripts, if `make robo` has installed them.
+pub(crate) fn python_script(name: &str) -> anyhow::Result<(std::path::PathBuf, std::path::PathBuf)> {
     let root = launch::gyms_dir().parent().map(std::path::Path::to_path_buf).unwrap_or_default();
     let python = root.join(".venv/bin/python");
-    let script = root.join("bench/py/load_client.py");
+    let script = root.join("bench/py").join(name);
     if !python.is_file() || !script.is_file() {
-        bail!("the agent load needs {} and {} (run `make robo`)", python.display(), script.display());
+        bail!("this bench needs {} and {} (run `make robo`)", python.display(), script.display());
     }
     Ok((python, script))
 }
@@ -46,9 +46,10 @@ pub fn run(gym: &str, seconds: f64, client: bool) -> anyhow::Result<Value> {
             stats_path.display().to_string(),
         ],
         sim_args: Vec::new(),
+        robot_config: None,
         ready_timeout: Duration::from_secs(60),
     };
-    let load = if client { Some(load_client()?) } else { None };
+    let load = if client { Some(python_script("load_client.py")?) } else { None };
     // The bare loop runs beside the runtime over the same window (start-up included), under the
     // same load, on the same CPU, at one FIFO priority above it: the runtime can never delay it,
     // so it is the best wake-up this machine gives under this load.

@@ -10,6 +10,7 @@ use runtime::launch::{self, Instance, UpOptions};
 
 mod author;
 mod bench_all;
+mod clear;
 mod episode;
 mod kin;
 mod sim_bench;
@@ -54,6 +55,15 @@ enum Cmd {
         /// into this folder: episode-N.trace.json and episode-N.eval.json.
         #[arg(long)]
         trace_dir: Option<std::path::PathBuf>,
+        /// Profile and limits (default: robot-skill/config/robot.json of this checkout).
+        #[arg(long)]
+        robot_config: Option<std::path::PathBuf>,
+    },
+    /// Operator only: clear an `operator_required` fault of a running instance (Franka profile),
+    /// after checking the arm and its surroundings.
+    Clear {
+        #[arg(long, default_value = "default")]
+        instance: String,
     },
     /// List the gyms of the pack, one name per line.
     Gyms,
@@ -126,6 +136,15 @@ enum BenchCmd {
         /// Seconds each loop runs.
         #[arg(long, default_value_t = 10.0)]
         seconds: f64,
+        #[arg(long, default_value = "pick_block_plate")]
+        gym: String,
+    },
+    /// Python round trips through `robo` (state only, two PNGs, raw arrays + depth) and
+    /// post_actions submission-to-first-motion latency, beside a Unix-socket baseline.
+    Robo {
+        /// Round trips per figure (state only; fewer for images).
+        #[arg(long, default_value_t = 2000)]
+        samples: usize,
         #[arg(long, default_value = "pick_block_plate")]
         gym: String,
     },
@@ -209,9 +228,11 @@ fn main() {
     let cli = Cli::parse();
     process::install_stop_signals();
     let r = match cli.command {
-        Cmd::Up { gym, mode, instance, render_hz, trace_dir } => {
-            up(&gym, mode, &instance, render_hz, trace_dir.as_deref())
+        Cmd::Up { gym, mode, instance, render_hz, trace_dir, robot_config } => {
+            let rc = robot_config.unwrap_or_else(launch::default_robot_config);
+            up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc)
         }
+        Cmd::Clear { instance } => clear::run(&instance),
         Cmd::Gyms => gyms(),
         Cmd::Replay { gym, seed, do_nothing, out } => replay(&gym, seed, do_nothing, &out),
         Cmd::AuthorDemo { gym } => author::run(&gym).map(|_| 0),
@@ -221,6 +242,7 @@ fn main() {
         Cmd::Bench { which: BenchCmd::Ik { targets, count } } => bench::ik::run(targets.as_deref(), count).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Tick { seconds, gym } } => bench::tick::run(&gym, seconds, false).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Jitter { seconds, gym } } => bench::tick::run(&gym, seconds, true).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::Robo { samples, gym } } => bench::robo::run(&gym, samples).map(|_| 0),
         Cmd::Bench { which: BenchCmd::All { jitter_seconds, out, quick } } => {
             bench_all::run(jitter_seconds, &out, quick).map(|_| 0)
         }
@@ -281,6 +303,7 @@ fn up(
     instance: &str,
     render_hz: f64,
     trace_dir: Option<&std::path::Path>,
+    robot_config: std::path::PathBuf,
 ) -> anyhow::Result<i32> {
     let opts = UpOptions {
         scene: launch::resolve_scene(gym)?,
@@ -292,6 +315,7 @@ fn up(
         render_hz,
         control_args: Vec::new(),
         sim_args: trace_dir.map(|d| vec!["--trace-dir".into(), d.display().to_string()]).unwrap_or_default(),
+        robot_config: Some(robot_config),
         ready_timeout: Duration::from_secs(60),
     };
     let mut inst = Instance::up(&opts)?;

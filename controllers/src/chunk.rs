@@ -6,7 +6,7 @@
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3, Vector6};
 
-use crate::error::{Rejection, Text};
+use crate::error::{Rejection, StepQuantity, Text};
 use crate::ik::IkSolver;
 use crate::limiter::LimiterConfig;
 use crate::robot::RobotModel;
@@ -81,6 +81,11 @@ fn check_shape(n: usize, freq_hz: f64, cfg: &LimiterConfig) -> Result<f64, Rejec
     Ok(freq)
 }
 
+/// Over a step cap by more than rounding: a step computed as exactly the cap passes.
+fn exceeds(value: f64, cap: f64) -> bool {
+    value > cap + 1e-9 * cap.abs().max(1.0)
+}
+
 fn check_values(w: usize, a: &[f64; 8]) -> Result<(), Rejection> {
     if let Some(i) = a.iter().position(|v| !v.is_finite()) {
         return Err(Rejection::NotFinite { waypoint: w, index: i });
@@ -148,6 +153,18 @@ impl ChunkPlan {
                 }
                 q[j] = a[j];
             }
+            for j in 0..N {
+                let step = (q[j] - prev[j]).abs();
+                if exceeds(step, cfg.max_joint_step_rad) {
+                    let quantity = StepQuantity::Joint(j);
+                    return Err(Rejection::StepTooLarge {
+                        waypoint: w,
+                        quantity,
+                        value: step,
+                        max: cfg.max_joint_step_rad,
+                    });
+                }
+            }
             // Timing first: an overlong chunk is refused before any path is checked.
             let seg = plan.segment_s(w, &prev, &q, freq, robot, cfg)?;
             if let Some(s) = safety {
@@ -209,6 +226,16 @@ impl ChunkPlan {
             // The straight TCP segment to this waypoint, sampled: every sample must have an IK
             // solution near the previous one, and with `safety` pass the checks.
             let from = plan.poses[w];
+            let (moved, turned) =
+                ((pose.translation.vector - from.translation.vector).norm(), pose.rotation.angle_to(&from.rotation));
+            for (value, max, quantity) in [
+                (moved, cfg.max_tcp_step_m, StepQuantity::TcpTranslation),
+                (turned, cfg.max_tcp_step_rad, StepQuantity::TcpRotation),
+            ] {
+                if exceeds(value, max) {
+                    return Err(Rejection::StepTooLarge { waypoint: w, quantity, value, max });
+                }
+            }
             let n = (((pose.translation.vector - from.translation.vector).norm()
                 + PATH_ROT_M_PER_RAD * pose.rotation.angle_to(&from.rotation))
                 / spacing)

@@ -679,6 +679,11 @@ impl Workspace {
         Ok(Self { min: min_m, max: max_m, bodies: false })
     }
 
+    /// The box's corners in the base frame, m (infinite where a side is open).
+    pub fn bounds(&self) -> ([f64; 3], [f64; 3]) {
+        (self.min, self.max)
+    }
+
     /// No limit at all.
     pub fn unbounded() -> Self {
         Self { min: [f64::NEG_INFINITY; 3], max: [f64::INFINITY; 3], bodies: false }

@@ -117,6 +117,25 @@ pub enum Rejection {
     /// The arm is braking after a safety check stopped the previous motion.
     Halting,
     UnknownRequestKind(u32),
+    /// A waypoint is further from the previous one (the first: from the measured position)
+    /// than the configured step cap allows.
+    StepTooLarge {
+        waypoint: usize,
+        quantity: StepQuantity,
+        value: f64,
+        max: f64,
+    },
+}
+
+/// What a step cap limits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StepQuantity {
+    /// One arm joint (0-based), rad.
+    Joint(usize),
+    /// TCP translation, m.
+    TcpTranslation,
+    /// TCP rotation, rad.
+    TcpRotation,
 }
 
 impl Rejection {
@@ -138,6 +157,7 @@ impl Rejection {
             Self::Unsafe { .. } => "unsafe",
             Self::Halting => "halting",
             Self::UnknownRequestKind(_) => "unknown_request_kind",
+            Self::StepTooLarge { .. } => "step_too_large",
         }
     }
 }
@@ -183,8 +203,22 @@ impl fmt::Display for Rejection {
                 rotation_error_rad.to_degrees()
             ),
             Self::Unsafe { waypoint, detail } => write!(f, "actions[{waypoint}] is refused: {detail}"),
-            Self::Halting => write!(f, "the arm is stopping after a safety check: send the chunk again once it rests"),
+            Self::Halting => write!(f, "the arm is braking after a stop (safety check or contact reflex): send the chunk again once it rests"),
             Self::UnknownRequestKind(k) => write!(f, "unknown request kind {k}"),
+            Self::StepTooLarge { waypoint, quantity, value, max } => {
+                let from = if *waypoint == 0 { "the measured position" } else { "the previous waypoint" };
+                let (what, unit) = match quantity {
+                    StepQuantity::Joint(j) => (Text::of(format_args!("joint {} changes", j + 1)), "rad"),
+                    StepQuantity::TcpTranslation => (Text::of(format_args!("the TCP moves")), "m"),
+                    StepQuantity::TcpRotation => (Text::of(format_args!("the TCP turns")), "rad"),
+                };
+                let parts = (value / max).ceil().max(2.0);
+                write!(
+                    f,
+                    "actions[{waypoint}]: {what} by {value:.4} {unit} from {from}; the cap is {max:.4} {unit} per waypoint ({:.4} {unit} over): split this step into at least {parts:.0} waypoints",
+                    value - max
+                )
+            }
         }
     }
 }

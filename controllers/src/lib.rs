@@ -14,7 +14,7 @@ pub mod safety;
 
 pub use chunk::{ChunkPlan, Waypoint};
 pub use collision::{CollisionModel, StaticScene, Violation, Workspace};
-pub use error::{Error, Rejection};
+pub use error::{Error, Rejection, StepQuantity};
 pub use ik::{IkConfig, IkError, IkSolution, IkSolver};
 pub use kinematics::{FrameId, Jacobian, Kinematics};
 pub use limiter::{JointTracker, LimiterConfig};

@@ -37,6 +37,11 @@ pub struct LimiterConfig {
     pub max_freq_hz: f64,
     pub max_chunk_duration_s: f64,
     pub max_chunk: usize,
+    /// Step caps between consecutive waypoints, the first counted from the measured position:
+    /// any joint (joint chunks), TCP translation and rotation (ee_pose chunks). Infinite: none.
+    pub max_joint_step_rad: f64,
+    pub max_tcp_step_m: f64,
+    pub max_tcp_step_rad: f64,
 }
 
 impl Default for LimiterConfig {
@@ -54,6 +59,9 @@ impl Default for LimiterConfig {
             max_freq_hz: 1000.0,
             max_chunk_duration_s: 120.0,
             max_chunk: 256,
+            max_joint_step_rad: f64::INFINITY,
+            max_tcp_step_m: f64::INFINITY,
+            max_tcp_step_rad: f64::INFINITY,
         }
     }
 }

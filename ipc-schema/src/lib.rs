@@ -10,7 +10,7 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 /// Bumped whenever any payload below changes layout or meaning. Every service carries it as
 /// the attribute `r2g.schema`; a process of another build is refused when it connects.
-pub const SCHEMA_VERSION: u32 = 1;
+pub const SCHEMA_VERSION: u32 = 2;
 /// Attribute key that carries [`SCHEMA_VERSION`] on every service.
 pub const SCHEMA_ATTRIBUTE: &str = "r2g.schema";
 
@@ -50,7 +50,7 @@ impl Default for Pose {
 /// Holds no object poses: privileged simulator state never crosses IPC.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
-#[type_name("r2g.SimState.v1")]
+#[type_name("r2g.SimState.v2")]
 pub struct SimState {
     /// Increments with every published state.
     pub seq: u64,
@@ -66,6 +66,9 @@ pub struct SimState {
     pub finger_m: f64,
     pub finger_max_m: f64,
     pub base_from_tcp: Pose,
+    /// Net contact force the environment exerts on the robot (arm and gripper), base frame, N.
+    /// What a real arm's external-force estimate reports; the runtime's Franka reflexes use it.
+    pub external_force_n: [f64; 3],
 }
 
 /// runtime → sim-host, once per tick: the limited joint command.
@@ -120,6 +123,8 @@ impl ControlType {
 pub enum RequestKind {
     Chunk = 1,
     Reset = 2,
+    /// Operator only (`r2g clear`): clears an `operator_required` fault (Franka profile).
+    ClearFault = 3,
 }
 
 /// agent → runtime: an action chunk or a reset.
@@ -182,7 +187,7 @@ impl Status {
 /// runtime → agent: progress and outcome of a [`Request`].
 #[repr(C)]
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
-#[type_name("r2g.Reply.v1")]
+#[type_name("r2g.Reply.v2")]
 pub struct Reply {
     pub id: u64,
     pub client: u64,
@@ -192,6 +197,11 @@ pub struct Reply {
     pub executed: u32,
     /// Largest |measured − target| over the arm joints when the request ended, rad.
     pub final_joint_error_rad: f64,
+    /// CLOCK_MONOTONIC when the runtime accepted the chunk, ns (0: not accepted).
+    pub accepted_ns: u64,
+    /// CLOCK_MONOTONIC of the first tick whose measured state showed the arm or fingers
+    /// moving for this chunk, ns (0: no motion seen).
+    pub first_motion_ns: u64,
     /// Why, in words a model can act on (NUL-padded UTF-8).
     pub reason: [u8; REASON_LEN],
 }
@@ -210,6 +220,8 @@ impl Reply {
             status: status as u32,
             executed: 0,
             final_joint_error_rad: 0.0,
+            accepted_ns: 0,
+            first_motion_ns: 0,
             reason: [0; REASON_LEN],
         };
         let mut w = FixedWriter { buf: &mut r.reason, len: 0 };
@@ -233,7 +245,7 @@ pub enum Mode {
 /// runtime → agents, once per tick (wall) or per step (lockstep): the agent-facing robot state.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
-#[type_name("r2g.RobotState.v1")]
+#[type_name("r2g.RobotState.v2")]
 pub struct RobotState {
     pub seq: u64,
     /// Simulated (or robot) time of the underlying measurement, s.
@@ -253,12 +265,17 @@ pub struct RobotState {
     pub active_request: u64,
     /// The last completed reset id.
     pub reset_id: u64,
+    /// [`SimState::external_force_n`] low-pass filtered (20 ms), base frame, N.
+    pub external_force_n: [f64; 3],
+    /// 1 while an `operator_required` fault holds the arm (Franka profile).
+    pub fault: u32,
+    pub _pad: u32,
 }
 
 /// runtime → agents, published once with history: the limits in force (`effective_safety`).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
-#[type_name("r2g.RuntimeInfo.v1")]
+#[type_name("r2g.RuntimeInfo.v2")]
 pub struct RuntimeInfo {
     pub schema: u32,
     pub mode: u32,
@@ -275,6 +292,50 @@ pub struct RuntimeInfo {
     pub default_freq_hz: f64,
     pub finger_max_m: f64,
     pub finger_speed_m_s: f64,
+    /// A [`Profile`] as u32.
+    pub profile: u32,
+    /// 1 when `workspace_*` hold a workspace box.
+    pub has_workspace: u32,
+    pub workspace_min_m: [f64; 3],
+    pub workspace_max_m: [f64; 3],
+    pub collision_margin_m: f64,
+    /// Largest change of any joint between consecutive joint waypoints (the first counted
+    /// from the measured position), rad.
+    pub max_joint_step_rad: f64,
+    /// Largest TCP translation / rotation between consecutive ee_pose waypoints, m / rad.
+    pub max_tcp_step_m: f64,
+    pub max_tcp_step_rad: f64,
+    /// Franka profile: contact force that stops a chunk (recoverable), N.
+    pub reflex_force_n: f64,
+    /// Franka profile: contact force that needs an operator, N.
+    pub operator_force_n: f64,
+}
+
+/// Which semantics the runtime follows (`config/robot.json` `profile`).
+#[repr(u32)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Profile {
+    /// reset() restores the scene; the control type is fixed per episode; no contact reflexes.
+    #[default]
+    Simulation = 1,
+    /// reset() only refreshes observations; contact reflexes stop chunks; faults need an operator.
+    Franka = 2,
+}
+
+impl Profile {
+    pub fn from_u32(v: u32) -> Option<Self> {
+        match v {
+            1 => Some(Self::Simulation),
+            2 => Some(Self::Franka),
+            _ => None,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Simulation => "simulation",
+            Self::Franka => "franka",
+        }
+    }
 }
 
 /// sim-host → agents, published once with history: which cameras exist.
@@ -451,19 +512,23 @@ pub struct Qos {
     pub buffer: usize,
     pub max_publishers: usize,
     pub max_subscribers: usize,
+    /// Samples one subscriber may hold at once (zero-copy views kept by a program).
+    pub borrowed: usize,
 }
 
 impl Qos {
     /// Newest-sample streams with one trusted writer (state, command, info): one buffered
     /// sample, overwritten by the next. A second publisher is refused by iceoryx2.
-    pub const STREAM: Qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 16 };
+    pub const STREAM: Qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 16, borrowed: 2 };
+    /// Camera frames: one writer; each reader may keep a few frames borrowed in place.
+    pub const CAMERA: Qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 8, borrowed: 6 };
     /// Resets from the runtime to the sim-host: one writer, none lost.
-    pub const CONTROL: Qos = Qos { history: 0, buffer: 16, max_publishers: 1, max_subscribers: 2 };
+    pub const CONTROL: Qos = Qos { history: 0, buffer: 16, max_publishers: 1, max_subscribers: 2, borrowed: 2 };
     /// Requests from agents to the runtime: many writers, one reader.
-    pub const REQUESTS: Qos = Qos { history: 0, buffer: 16, max_publishers: 16, max_subscribers: 2 };
+    pub const REQUESTS: Qos = Qos { history: 0, buffer: 16, max_publishers: 16, max_subscribers: 2, borrowed: 2 };
     /// Replies from the runtime to every agent; deep enough that a busy agent's rejections
     /// cannot push another agent's reply out while it waits.
-    pub const REPLIES: Qos = Qos { history: 0, buffer: 256, max_publishers: 1, max_subscribers: 16 };
+    pub const REPLIES: Qos = Qos { history: 0, buffer: 256, max_publishers: 1, max_subscribers: 16, borrowed: 2 };
 }
 
 pub type PubSub<T> = publish_subscribe::PortFactory<ipc::Service, T, ()>;
@@ -496,6 +561,7 @@ pub fn open_or_create_pubsub<T: core::fmt::Debug + ZeroCopySend>(
             .subscriber_max_buffer_size(qos.buffer.max(qos.history).max(1))
             .max_publishers(qos.max_publishers)
             .max_subscribers(qos.max_subscribers)
+            .subscriber_max_borrowed_samples(qos.borrowed.max(1))
             .max_nodes(32)
             .enable_safe_overflow(true)
             .open_or_create_with_attributes(&verifier());
@@ -633,9 +699,13 @@ mod tests {
     #[test]
     fn payloads_keep_their_sizes() {
         // A layout change must bump SCHEMA_VERSION; this test makes the change visible.
-        assert_eq!(core::mem::size_of::<SimState>(), 216);
+        // Schema 2 added the external force (SimState, RobotState), the fault flag, the reply's
+        // latency stamps and the profile limits.
+        assert_eq!(core::mem::size_of::<SimState>(), 240);
         assert_eq!(core::mem::size_of::<Request>(), 40 + 8 * WAYPOINT_LEN * MAX_CHUNK);
-        assert_eq!(core::mem::size_of::<RobotState>(), 224);
+        assert_eq!(core::mem::size_of::<RobotState>(), 256);
+        assert_eq!(core::mem::size_of::<Reply>(), 48 + REASON_LEN);
+        assert_eq!(SCHEMA_VERSION, 2);
     }
 }
 

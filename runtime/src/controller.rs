@@ -4,10 +4,15 @@
 
 use controllers::chunk::Reference;
 use controllers::diffik::{self, DiffIkConfig};
+use controllers::error::Text;
 use controllers::ik::{IkConfig, IkSolver};
 use controllers::safety::SafetyChecks;
 use controllers::{ChunkPlan, JointTracker, LimiterConfig, Rejection, RobotModel};
-use ipc_schema::{ControlType, JointCommand, Reply, Request, RequestKind, RobotState, SimState, Status, N_JOINTS};
+use ipc_schema::{
+    ControlType, JointCommand, Profile, Reply, Request, RequestKind, RobotState, SimState, Status, N_JOINTS,
+};
+
+use crate::robot_config::Reflexes;
 
 /// Measured joints must come this close to the final target for a chunk to count as settled.
 const SETTLE_TOL_RAD: f64 = 0.002;
@@ -16,6 +21,11 @@ const SETTLE_VEL_RAD_S: f64 = 0.02;
 const SETTLE_TIMEOUT_S: f64 = 1.5;
 /// How long past the planned duration the command may take to reach the last waypoint, s.
 const MOVE_OVERTIME_S: f64 = 10.0;
+/// Time constant of the low-pass filter on the measured external force, s.
+const FORCE_FILTER_S: f64 = 0.02;
+/// Contact reflexes need the force to have grown by this much since the chunk began, so an arm
+/// already pressing on something can still back away from it, N.
+const REFLEX_GROWTH_N: f64 = 5.0;
 
 #[derive(Debug, Clone, Copy)]
 enum Phase {
@@ -29,6 +39,20 @@ struct Active {
     client: u64,
     t_s: f64,
     phase: Phase,
+    accepted_ns: u64,
+    first_motion_ns: u64,
+    /// Measured joints and finger at acceptance, to see the first motion.
+    q0: [f64; N_JOINTS],
+    finger0: f64,
+}
+
+impl Active {
+    /// Stamps a reply to this chunk with its acceptance and first-motion times.
+    fn stamp(&self, mut r: Reply) -> Reply {
+        r.accepted_ns = self.accepted_ns;
+        r.first_motion_ns = self.first_motion_ns;
+        r
+    }
 }
 
 pub struct Controller {
@@ -58,6 +82,19 @@ pub struct Controller {
     q_ref: [f64; N_JOINTS],
     /// A safety check stopped the motion: brake until at rest.
     halting: bool,
+    profile: Profile,
+    /// Contact reflexes (Franka profile only).
+    reflexes: Option<Reflexes>,
+    /// External force, low-pass filtered, base frame, N.
+    force_n: [f64; 3],
+    /// Its magnitude when the running chunk was accepted.
+    force_at_start_n: f64,
+    /// An `operator_required` fault holds the arm until [`RequestKind::ClearFault`].
+    fault: Option<Text>,
+    /// The `accepted` reply of the chunk just taken, for [`Self::take_accepted`].
+    accepted: Option<Reply>,
+    /// The reply of a chunk stopped by a safety check or reflex, sent once the arm rests.
+    stop_reply: Option<Reply>,
 }
 
 /// A request the controller wants passed to the simulator.
@@ -99,7 +136,39 @@ impl Controller {
             diffik: DiffIkConfig::default(),
             q_ref: [0.0; N_JOINTS],
             halting: false,
+            profile: Profile::Simulation,
+            reflexes: None,
+            force_n: [0.0; 3],
+            force_at_start_n: 0.0,
+            fault: None,
+            accepted: None,
+            stop_reply: None,
         }
+    }
+
+    /// Follows the semantics of `profile`; contact reflexes apply in the Franka profile only.
+    pub fn with_profile(mut self, profile: Profile, reflexes: Reflexes) -> Self {
+        self.profile = profile;
+        self.reflexes = (profile == Profile::Franka).then_some(reflexes);
+        self
+    }
+
+    pub fn safety(&self) -> Option<&SafetyChecks> {
+        self.safety.as_ref()
+    }
+
+    pub fn profile(&self) -> Profile {
+        self.profile
+    }
+
+    /// The `accepted` reply of a chunk taken by the last [`Self::request`], once.
+    pub fn take_accepted(&mut self) -> Option<Reply> {
+        self.accepted.take()
+    }
+
+    /// The operator fault holding the arm, if any.
+    pub fn fault(&self) -> Option<&str> {
+        self.fault.as_ref().map(Text::as_str)
     }
 
     /// Adds collision, obstacle and workspace checks to chunk acceptance and to every tick.
@@ -110,7 +179,7 @@ impl Controller {
 
     /// True while a chunk or reset is in progress (lockstep advances time only then).
     pub fn busy(&self) -> bool {
-        self.active.is_some() || self.pending_reset.is_some()
+        self.active.is_some() || self.pending_reset.is_some() || self.halting
     }
 
     pub fn locked(&self) -> Option<ControlType> {
@@ -128,14 +197,22 @@ impl Controller {
             self.ensure_tracker(state);
         }
         self.last_rejection = None;
+        if req.kind == RequestKind::ClearFault as u32 {
+            let why = if self.fault.take().is_some() {
+                "fault cleared by the operator: the arm accepts commands again"
+            } else {
+                "there was no fault to clear"
+            };
+            return (Some(Reply::new(req.id, req.client, Status::Executed, why)), Forward::None);
+        }
         // A new chunk from the client whose chunk is running replaces it, blending from the
         // current command; anything else waits for the running request to finish.
         let preempts = req.kind == RequestKind::Chunk as u32 && self.active.is_some_and(|a| a.client == req.client);
-        if self.busy() && !preempts {
-            return self.reject(req, Rejection::Busy);
-        }
         if self.halting {
             return self.reject(req, Rejection::Halting);
+        }
+        if self.busy() && !preempts {
+            return self.reject(req, Rejection::Busy);
         }
         let Some(tracker) = self.tracker else {
             let r = Reply::new(
@@ -146,7 +223,18 @@ impl Controller {
             );
             return (Some(r), Forward::None);
         };
+        if let (Some(f), true) = (self.fault, req.kind == RequestKind::Chunk as u32) {
+            self.last_rejection = Some("operator_required");
+            let why = format_args!(
+                "the arm is in a fault ({f}) and needs an operator to clear it; every command returns 0 until then: stop and report"
+            );
+            return (Some(Reply::formatted(req.id, req.client, Status::OperatorRequired, why)), Forward::None);
+        }
         match req.kind {
+            k if k == RequestKind::Reset as u32 && self.profile == Profile::Franka => {
+                let why = "reset on the franka profile only refreshes observations: nothing moved, objects are not restored, faults are not cleared";
+                (Some(Reply::new(req.id, req.client, Status::Executed, why)), Forward::None)
+            }
             k if k == RequestKind::Reset as u32 => {
                 let sim_id = self.next_reset_id;
                 self.next_reset_id += 1;
@@ -157,7 +245,7 @@ impl Controller {
                 let Some(ct) = ControlType::from_u32(req.control_type) else {
                     return self.reject(req, Rejection::UnknownControlType(req.control_type));
                 };
-                if let Some(locked) = self.locked {
+                if let (Some(locked), Profile::Simulation) = (self.locked, self.profile) {
                     if locked != ct {
                         return self
                             .reject(req, Rejection::ControlTypeLocked { locked: locked.name(), requested: ct.name() });
@@ -185,19 +273,33 @@ impl Controller {
                 match plan {
                     Ok(plan) => {
                         let superseded = self.active.map(|old| {
-                            let mut r = Reply::formatted(
+                            let mut r = old.stamp(Reply::formatted(
                                 old.id,
                                 old.client,
                                 Status::Failed,
                                 format_args!("superseded by request {} before it finished", req.id),
-                            );
+                            ));
                             r.executed = self.reference.reached as u32;
                             r
                         });
                         self.plan = plan;
                         self.q_ref = tracker.q_rad;
                         self.locked = Some(ct);
-                        self.active = Some(Active { id: req.id, client: req.client, t_s: 0.0, phase: Phase::Moving });
+                        let now = ipc_schema::monotonic_ns();
+                        self.active = Some(Active {
+                            id: req.id,
+                            client: req.client,
+                            t_s: 0.0,
+                            phase: Phase::Moving,
+                            accepted_ns: now,
+                            first_motion_ns: 0,
+                            q0: state.q_rad,
+                            finger0: state.finger_m,
+                        });
+                        self.force_at_start_n = norm(self.force_n);
+                        let mut accepted = Reply::new(req.id, req.client, Status::Accepted, "accepted: executing");
+                        accepted.accepted_ns = now;
+                        self.accepted = Some(accepted);
                         (superseded, Forward::None)
                     }
                     Err(why) => self.reject(req, why),
@@ -238,6 +340,14 @@ impl Controller {
     pub fn tick(&mut self, state: &SimState) -> (JointCommand, Option<Reply>) {
         let mut reply = self.complete_reset(state);
         self.ensure_tracker(state);
+        if let Some(a) = self.active.as_mut().filter(|a| a.first_motion_ns == 0) {
+            let moved = (0..N_JOINTS).any(|j| (state.q_rad[j] - a.q0[j]).abs() > 1e-4)
+                || (state.finger_m - a.finger0).abs() > 1e-5;
+            if moved {
+                a.first_motion_ns = ipc_schema::monotonic_ns();
+            }
+        }
+        let timing = self.active;
         if let Some(a) = self.active.as_mut() {
             a.t_s += self.dt_s;
             match self.plan.sample_pose(a.t_s) {
@@ -267,6 +377,13 @@ impl Controller {
                 None => self.reference = self.plan.sample(a.t_s),
             }
         }
+        let alpha = self.dt_s / (FORCE_FILTER_S + self.dt_s);
+        for (f, m) in self.force_n.iter_mut().zip(state.external_force_n) {
+            *f += alpha * (m - *f);
+        }
+        if let Some(r) = self.contact_reflex() {
+            self.stop_reply = Some(r);
+        }
         let Some(tracker) = self.tracker.as_mut() else { unreachable!("set above") };
         let before = *tracker;
         if self.halting {
@@ -284,12 +401,14 @@ impl Controller {
                 if let Some(a) = self.active.take() {
                     let mut r = Reply::formatted(a.id, a.client, Status::Failed, format_args!("stopped: {v}"));
                     r.executed = self.reference.reached as u32;
-                    reply = Some(r);
+                    self.stop_reply = Some(a.stamp(r));
                 }
             }
         }
         if self.halting && tracker.stopped() {
             self.halting = false;
+            // The stopped chunk's reply goes out once the arm rests, so the caller can move at once.
+            reply = self.stop_reply.take();
             self.reference = Reference {
                 q_rad: tracker.q_rad,
                 dq_rad_s: [0.0; N_JOINTS],
@@ -367,6 +486,11 @@ impl Controller {
                 act.phase = a.phase;
             }
         }
+        if let (Some(r), Some(a)) = (reply.as_mut(), timing) {
+            if r.id == a.id && r.client == a.client {
+                *r = a.stamp(*r);
+            }
+        }
         self.cmd_seq += 1;
         let cmd = JointCommand {
             seq: self.cmd_seq,
@@ -376,6 +500,60 @@ impl Controller {
             finger_m: tracker.finger_m,
         };
         (cmd, reply)
+    }
+
+    /// Franka profile: stops the running chunk when the contact force passes a threshold, as the
+    /// arm's own reflexes would. Returns the chunk's final reply.
+    fn contact_reflex(&mut self) -> Option<Reply> {
+        let rx = self.reflexes?;
+        if self.halting {
+            // A collision hard enough to keep the force rising while the arm brakes escalates.
+            let f = norm(self.force_n);
+            let r = self.stop_reply.as_mut().filter(|r| r.status == Status::RecoveredReplanRequired as u32)?;
+            if f > rx.operator_force_n {
+                self.fault =
+                    Some(Text::of(format_args!("contact force {f:.1} N over the {:.0} N limit", rx.operator_force_n)));
+                let why = format_args!(
+                    "stopped: contact force rose to {f:.1} N while braking, past the {:.0} N operator limit; the arm holds and needs an operator: stop sending actions and report",
+                    rx.operator_force_n
+                );
+                let mut escalated = Reply::formatted(r.id, r.client, Status::OperatorRequired, why);
+                (escalated.executed, escalated.accepted_ns, escalated.first_motion_ns) =
+                    (r.executed, r.accepted_ns, r.first_motion_ns);
+                *r = escalated;
+            }
+            return None;
+        }
+        let a = self.active?;
+        let f = norm(self.force_n);
+        let (done, n) = (self.reference.reached, self.plan.len());
+        let at = (done + 1).min(n);
+        // Only a force that grew during this chunk counts, so the arm can back out of a contact.
+        if f <= self.force_at_start_n + REFLEX_GROWTH_N {
+            return None;
+        }
+        let mut r = if f > rx.operator_force_n {
+            self.fault =
+                Some(Text::of(format_args!("contact force {f:.1} N over the {:.0} N limit", rx.operator_force_n)));
+            let why = format_args!(
+                "stopped: contact force {f:.1} N exceeded the {:.0} N operator limit during waypoint {at} of {n}; the arm holds and needs an operator: stop sending actions and report",
+                rx.operator_force_n
+            );
+            Reply::formatted(a.id, a.client, Status::OperatorRequired, why)
+        } else if f > rx.reflex_force_n {
+            let why = format_args!(
+                "contact reflex: force {f:.1} N exceeded the {:.0} N threshold during waypoint {at} of {n}; the arm stopped and recovered by itself: observe and replan from the measured state",
+                rx.reflex_force_n
+            );
+            Reply::formatted(a.id, a.client, Status::RecoveredReplanRequired, why)
+        } else {
+            return None;
+        };
+        r.executed = done as u32;
+        self.active = None;
+        self.halting = true;
+        self.last_rejection = None;
+        Some(a.stamp(r))
     }
 
     /// First state, or first after a reset: hold exactly where the arm is.
@@ -413,6 +591,13 @@ impl Controller {
             mode,
             active_request: self.active_request(),
             reset_id: state.reset_id,
+            external_force_n: self.force_n,
+            fault: u32::from(self.fault.is_some()),
+            _pad: 0,
         }
     }
+}
+
+fn norm(v: [f64; 3]) -> f64 {
+    (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
 }

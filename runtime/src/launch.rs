@@ -17,6 +17,14 @@ pub fn gyms_dir() -> PathBuf {
     checkout_dir("R2G_GYMS", "gyms")
 }
 
+/// The shipped robot configuration: `$R2G_ROBOT_CONFIG`, else
+/// `robot-skill/config/robot.json` of the checkout.
+pub fn default_robot_config() -> PathBuf {
+    std::env::var_os("R2G_ROBOT_CONFIG")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| checkout_dir("R2G_SKILL", "robot-skill").join("config").join("robot.json"))
+}
+
 /// Where the robot descriptions live: `$R2G_ROBOTS`, else `robots/` of the checkout holding
 /// this binary, else `./robots`.
 pub fn robots_dir() -> PathBuf {
@@ -103,6 +111,8 @@ pub struct UpOptions {
     pub control_args: Vec<String>,
     /// Extra arguments for r2g-sim (e.g. --trace-dir).
     pub sim_args: Vec<String>,
+    /// `config/robot.json` for r2g-control (None: its built-in defaults, the simulation profile).
+    pub robot_config: Option<PathBuf>,
     pub ready_timeout: Duration,
 }
 
@@ -168,6 +178,11 @@ impl Instance {
         let sim = spawn(&sibling("r2g-sim")?, &sim_args)?;
         let mode = if opts.mode == Mode::Lockstep { "lockstep" } else { "wall" };
         let mut control_args = vec![scene, "--instance".into(), opts.instance.clone(), "--mode".into(), mode.into()];
+        if let Some(rc) = &opts.robot_config {
+            // Checked here too, so a bad file fails `r2g up` with its reason before anything starts.
+            crate::RobotConfig::load(rc)?;
+            control_args.extend(["--robot-config".into(), rc.display().to_string()]);
+        }
         control_args.extend(opts.control_args.iter().cloned());
         let control = match spawn(&sibling("r2g-control")?, &control_args) {
             Ok(c) => c,
@@ -218,7 +233,7 @@ impl Instance {
                     let s = *s;
                     for i in 0..(s.camera_count as usize).min(ipc_schema::MAX_CAMERAS) {
                         let name = s.camera_name(i).to_string();
-                        let qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 8 };
+                        let qos = Qos::CAMERA;
                         let sub =
                             ipc_schema::open_or_create_pubsub::<CameraFrame>(&node, &services.camera(&name), qos)?
                                 .subscriber_builder()

@@ -3,6 +3,7 @@
 pub mod alloc_count;
 pub mod controller;
 pub mod launch;
+pub mod robot_config;
 pub mod rt;
 pub mod stats;
 
@@ -11,11 +12,12 @@ use std::time::Duration;
 
 use anyhow::{bail, Context};
 use controllers::safety::SafetyChecks;
-use controllers::{LimiterConfig, RobotModel};
+use controllers::RobotModel;
 use ipc_schema::process::{self, PeerWatch};
 use ipc_schema::{JointCommand, Mode, Qos, Reply, Request, RobotState, RuntimeInfo, Services, SimReset, SimState};
 
 pub use controller::Controller;
+pub use robot_config::RobotConfig;
 pub use stats::{Histogram, TickStats};
 
 /// How r2g-control runs.
@@ -34,6 +36,8 @@ pub struct RunConfig {
     pub duration: Option<Duration>,
     /// The runtime stops when no state arrives for this long in wall mode.
     pub state_timeout: Duration,
+    /// Profile and the limits added on top of the robot's (`config/robot.json`).
+    pub robot: RobotConfig,
 }
 
 /// Reads the robot of a scene file: its URDF (relative to the scene), TCP link and limit
@@ -171,7 +175,7 @@ impl Ports {
                 }
             };
             let (reply, fwd) = ctl.request(&req, latest);
-            if let Some(r) = reply {
+            for r in [reply, ctl.take_accepted()].into_iter().flatten() {
                 if self.reply_pub.send_copy(r).is_err() {
                     stats.agent_port_errors += 1;
                 }
@@ -218,7 +222,7 @@ impl Ports {
     }
 }
 
-fn runtime_info(ctl: &Controller, mode: Mode, period_ns: u64) -> RuntimeInfo {
+fn runtime_info(ctl: &Controller, mode: Mode, period_ns: u64, reflexes: Option<robot_config::Reflexes>) -> RuntimeInfo {
     let mut i = RuntimeInfo {
         schema: ipc_schema::SCHEMA_VERSION,
         mode: mode as u32,
@@ -229,8 +233,20 @@ fn runtime_info(ctl: &Controller, mode: Mode, period_ns: u64) -> RuntimeInfo {
         default_freq_hz: ctl.cfg.default_freq_hz,
         finger_max_m: ctl.robot.finger_max_m,
         finger_speed_m_s: ctl.robot.finger_speed_m_s,
+        profile: ctl.profile() as u32,
+        max_joint_step_rad: ctl.cfg.max_joint_step_rad,
+        max_tcp_step_m: ctl.cfg.max_tcp_step_m,
+        max_tcp_step_rad: ctl.cfg.max_tcp_step_rad,
+        reflex_force_n: reflexes.map_or(f64::NAN, |r| r.reflex_force_n),
+        operator_force_n: reflexes.map_or(f64::NAN, |r| r.operator_force_n),
         ..Default::default()
     };
+    if let Some(s) = ctl.safety() {
+        let (lo, hi) = s.workspace.bounds();
+        i.has_workspace = u32::from(lo.iter().chain(hi.iter()).any(|v| v.is_finite()));
+        (i.workspace_min_m, i.workspace_max_m) = (lo, hi);
+        i.collision_margin_m = s.margin_m;
+    }
     for (j, l) in ctl.robot.joints.iter().enumerate() {
         i.q_min_rad[j] = l.q_min_rad;
         i.q_max_rad[j] = l.q_max_rad;
@@ -245,7 +261,9 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
     let services = Services::new(&cfg.instance)?;
     let (robot, safety) = scene_robot(&cfg.scene)?;
     let dt_s = cfg.period_ns as f64 * 1e-9;
-    let mut ctl = Controller::new(robot, LimiterConfig::default(), dt_s).with_safety(safety);
+    let mut ctl = Controller::new(robot, cfg.robot.limiter(), dt_s)
+        .with_safety(safety)
+        .with_profile(cfg.robot.profile, cfg.robot.reflexes);
     let ports = Ports::open(&services)?;
     let sim = PeerWatch::spawn(process::sim_node(&cfg.instance), Duration::from_secs(30));
 
@@ -269,7 +287,8 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
         ports.cmd_pub.update_connections()?;
         ports.reset_pub.update_connections()?;
     }
-    let info = runtime_info(&ctl, cfg.mode, cfg.period_ns);
+    let reflexes = (cfg.robot.profile == ipc_schema::Profile::Franka).then_some(cfg.robot.reflexes);
+    let info = runtime_info(&ctl, cfg.mode, cfg.period_ns, reflexes);
     ports.info_pub.send_copy(info)?;
 
     let stats = match cfg.mode {
@@ -376,6 +395,9 @@ fn lockstep_loop(
             bail!("r2g-sim of instance '{}' stopped; the runtime stops too", cfg.instance);
         }
         if ports.serve_requests(ctl, &latest, &mut stats)? {
+            // A reply can change what the state reports (a cleared fault, the locked type).
+            robot_seq += 1;
+            ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), None, &mut stats);
             ports.wake_agents(&mut stats);
         }
         if let Some(sim_id) = ctl.pending_reset() {

@@ -42,6 +42,10 @@ struct Args {
     /// Stop after this many seconds (default: run until SIGINT/SIGTERM).
     #[arg(long)]
     duration_s: Option<f64>,
+    /// Profile and limits (`robot-skill/config/robot.json`); without it, the shipped defaults
+    /// (simulation profile).
+    #[arg(long)]
+    robot_config: Option<PathBuf>,
     /// Write the tick statistics as JSON here on exit.
     #[arg(long)]
     stats_out: Option<PathBuf>,
@@ -64,6 +68,16 @@ fn main() {
     if std::env::var_os("R2G_ABORT_ON_TICK_ALLOC").is_some_and(|v| v == "1") {
         runtime::alloc_count::ABORT_ON_SYSTEM_ALLOC.store(true, std::sync::atomic::Ordering::Relaxed);
     }
+    let robot = match &args.robot_config {
+        Some(p) => match runtime::RobotConfig::load(p) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("r2g-control: error: {e:#}");
+                std::process::exit(2);
+            }
+        },
+        None => runtime::RobotConfig::default(),
+    };
     process::install_stop_signals();
     process::die_with_parent();
     let cfg = runtime::RunConfig {
@@ -79,6 +93,7 @@ fn main() {
         cpu: args.cpu.or_else(runtime::rt::last_cpu),
         duration: args.duration_s.map(Duration::from_secs_f64),
         state_timeout: Duration::from_millis(500),
+        robot,
     };
     match runtime::run(&cfg) {
         Ok(stats) => {

@@ -155,26 +155,30 @@ fn the_per_tick_check_halts_a_motion_that_acceptance_did_not_catch() {
     let mut ctl = ctl.with_safety(safety.clone());
     let mut monitor = controllers::monitor::Monitor::new(0.001);
     monitor.start_at(&HOME, 0.04, &robot);
-    let mut halted = None;
+    let (mut halted, mut refused_while_braking) = (None, false);
     for tick in 0..20_000 {
         let (cmd, reply) = ctl.tick(&state);
         monitor.observe(&cmd.q_rad, cmd.finger_m, &robot, &cfg);
         state.seq += 1;
         state.q_rad = cmd.q_rad;
         state.dq_rad_s = cmd.dq_rad_s;
+        if ctl.busy() && ctl.active_request() == 0 && !refused_while_braking {
+            // Braking after the stop: new chunks wait.
+            let (again, _) = ctl.request(&request(2, ControlType::Joint, &[joint_wp(HOME, -1.0)]), &state);
+            assert!(again.expect("refused").reason_str().contains("braking"));
+            refused_while_braking = true;
+        }
         if let Some(r) = reply {
             assert_eq!(r.status, Status::Failed as u32);
             assert!(r.reason_str().starts_with("stopped:") && r.reason_str().contains("table"), "{}", r.reason_str());
+            // The reply comes once the arm rests, so the caller can move again at once.
+            assert!(cmd.dq_rad_s.iter().all(|v| v.abs() < 1e-6), "{:?}", cmd.dq_rad_s);
             halted = Some(tick);
-            // While braking, new chunks wait.
-            let (again, _) = ctl.request(&request(2, ControlType::Joint, &[joint_wp(HOME, -1.0)]), &state);
-            assert!(again.expect("refused").reason_str().contains("stopping"));
-        }
-        if halted.is_some() && cmd.dq_rad_s.iter().all(|v| *v == 0.0) {
             break;
         }
     }
     assert!(halted.is_some(), "never halted");
+    assert!(refused_while_braking);
     assert_eq!(monitor.violations.total(), 0, "{:?}", monitor.first);
     // It came to rest clear of the table, and takes chunks again.
     safety.check(&state.q_rad).expect("the rest configuration passes the checks");
@@ -204,4 +208,117 @@ fn an_ee_pose_segment_is_checked_between_its_waypoints() {
     assert_eq!(reply.status, Status::Rejected as u32);
     assert!(reply.reason_str().starts_with("actions[1]"), "{}", reply.reason_str());
     eprintln!("{}", reply.reason_str());
+}
+
+fn franka(reflex_n: f64, operator_n: f64) -> Controller {
+    let (robot, safety) = runtime::scene_robot(&scene()).expect("scene");
+    let reflexes = runtime::robot_config::Reflexes { reflex_force_n: reflex_n, operator_force_n: operator_n };
+    Controller::new(robot, LimiterConfig::default(), 0.001)
+        .with_safety(safety)
+        .with_profile(ipc_schema::Profile::Franka, reflexes)
+}
+
+/// Ticks until a reply comes; from tick `at` on, the environment pushes on the arm with `force_n`.
+fn finish_pushed(ctl: &mut Controller, state: &mut SimState, at: u64, force_n: f64) -> (ipc_schema::Reply, u64) {
+    for tick in 0..60_000 {
+        if tick >= at {
+            state.external_force_n = [0.0, 0.0, force_n];
+        }
+        let (cmd, reply) = ctl.tick(state);
+        state.seq += 1;
+        state.q_rad = cmd.q_rad;
+        state.dq_rad_s = cmd.dq_rad_s;
+        state.finger_m = cmd.finger_m;
+        if let Some(r) = reply {
+            return (r, tick);
+        }
+    }
+    panic!("no reply in 60 s");
+}
+
+fn ramp(from: [f64; 7], joint: usize, by: f64, n: usize) -> Vec<[f64; 8]> {
+    (1..=n)
+        .map(|k| {
+            let mut w = [0.0; 8];
+            w[..7].copy_from_slice(&from);
+            w[joint] += by * k as f64 / n as f64;
+            w[7] = -1.0;
+            w
+        })
+        .collect()
+}
+
+#[test]
+fn franka_reflexes_stop_a_chunk_and_an_operator_fault_holds_until_cleared() {
+    let mut ctl = franka(30.0, 80.0);
+    let mut state = SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, ..SimState::default() };
+    // A push of 40 N half a second in: the reflex stops the chunk part-way, after braking.
+    let (reply, _) = ctl.request(&request(1, ControlType::Joint, &ramp(HOME, 0, 0.3, 10)), &state);
+    assert!(reply.is_none());
+    let accepted = ctl.take_accepted().expect("an accepted reply");
+    assert_eq!(accepted.status, Status::Accepted as u32);
+    assert!(accepted.accepted_ns > 0);
+    let (r, _) = finish_pushed(&mut ctl, &mut state, 500, 40.0);
+    assert_eq!(r.status, Status::RecoveredReplanRequired as u32, "{}", r.reason_str());
+    assert!(r.reason_str().contains("exceeded the 30 N threshold"), "{}", r.reason_str());
+    assert!(r.executed > 0 && r.executed < 10, "{}", r.executed);
+    assert!(r.first_motion_ns >= r.accepted_ns && r.accepted_ns > 0);
+    assert!(state.dq_rad_s.iter().all(|v| v.abs() < 1e-3), "the reply waits until the arm rests");
+    // The force stays at 40 N but does not grow: the next chunk (backing off) runs.
+    let back = ramp(state.q_rad, 0, -0.1, 3);
+    let (r, _) = run(&mut ctl, &mut state, &request(2, ControlType::Joint, &back));
+    assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
+    // 100 N growing during a chunk: an operator fault; everything is refused until cleared.
+    state.external_force_n = [0.0; 3];
+    ctl.request(&request(3, ControlType::Joint, &ramp(state.q_rad, 0, 0.2, 10)), &state);
+    let (r, _) = finish_pushed(&mut ctl, &mut state, 200, 100.0);
+    assert_eq!(r.status, Status::OperatorRequired as u32, "{}", r.reason_str());
+    assert!(ctl.fault().is_some_and(|f| f.contains("80 N")));
+    let back = request(4, ControlType::Joint, &ramp(state.q_rad, 0, -0.05, 2));
+    let (r, _) = run(&mut ctl, &mut state, &back);
+    assert_eq!(r.status, Status::OperatorRequired as u32);
+    assert!(r.reason_str().contains("needs an operator"), "{}", r.reason_str());
+    let mut clear = request(5, ControlType::Joint, &[]);
+    clear.kind = RequestKind::ClearFault as u32;
+    let (r, _) = ctl.request(&clear, &state);
+    assert_eq!(r.map(|r| r.status), Some(Status::Executed as u32));
+    assert!(ctl.fault().is_none());
+    let back = request(6, ControlType::Joint, &ramp(state.q_rad, 0, -0.05, 2));
+    let (r, _) = run(&mut ctl, &mut state, &back);
+    assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
+}
+
+#[test]
+fn franka_reset_refreshes_only_and_control_types_may_alternate() {
+    let mut ctl = franka(30.0, 80.0);
+    let mut state = SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, ..SimState::default() };
+    let mut reset = request(1, ControlType::Joint, &[]);
+    reset.kind = RequestKind::Reset as u32;
+    let (r, fwd) = ctl.request(&reset, &state);
+    assert!(matches!(fwd, runtime::controller::Forward::None), "nothing goes to the simulator");
+    assert!(r.is_some_and(|r| r.status == Status::Executed as u32 && r.reason_str().contains("only refreshes")));
+    let (r, _) = run(&mut ctl, &mut state, &request(2, ControlType::Joint, &ramp(HOME, 6, 0.1, 2)));
+    assert_eq!(r.status, Status::Executed as u32);
+    let (robot, _) = runtime::scene_robot(&scene()).expect("scene");
+    let p = robot.kin.fk(&state.q_rad, robot.kin.tcp);
+    let (t, aa) = (p.translation.vector, p.rotation.scaled_axis());
+    let ee = [t.x, t.y, t.z + 0.01, aa.x, aa.y, aa.z, 0.0, -1.0];
+    let (r, _) = run(&mut ctl, &mut state, &request(3, ControlType::EePose, &[ee]));
+    assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
+}
+
+#[test]
+fn step_caps_reject_far_waypoints_with_the_excess_and_pass_split_ones() {
+    let (robot, safety) = runtime::scene_robot(&scene()).expect("scene");
+    let cfg = LimiterConfig { max_joint_step_rad: 0.1, ..LimiterConfig::default() };
+    let mut ctl = Controller::new(robot, cfg, 0.001).with_safety(safety);
+    let mut state = SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, ..SimState::default() };
+    let (r, _) = ctl.request(&request(1, ControlType::Joint, &ramp(HOME, 2, 0.25, 2)), &state);
+    let r = r.expect("rejected at once");
+    assert_eq!(r.status, Status::Rejected as u32);
+    let why = r.reason_str();
+    assert!(why.starts_with("actions[0]: joint 3 changes by 0.1250 rad from the measured position"), "{why}");
+    assert!(why.contains("cap is 0.1000 rad") && why.contains("0.0250 rad over"), "{why}");
+    let (r, _) = run(&mut ctl, &mut state, &request(2, ControlType::Joint, &ramp(HOME, 2, 0.25, 3)));
+    assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
 }

@@ -118,7 +118,7 @@ pub fn run(
 ) -> anyhow::Result<()> {
     let node = ipc_schema::node(&format!("r2g-render-{}", cfg.services.instance))?;
     let wake = ipc_schema::open_or_create_event(&node, &cfg.services.agent_wake())?.notifier_builder().create()?;
-    let camera_qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 8 };
+    let camera_qos = Qos::CAMERA;
     let mut publishers = Vec::new();
     for (spec, _) in &cfg.cameras {
         let svc =
@@ -132,6 +132,7 @@ pub fn run(
     let mut last_seq = u64::MAX;
     let mut next = Instant::now();
     let mut frame_seq = 0u64;
+    let mut idle = 0u64;
     while !stop.load(Ordering::Relaxed) {
         let snap = {
             let Ok(s) = snapshot.lock() else { break };
@@ -142,6 +143,16 @@ pub fn run(
             }
         };
         let Some(snap) = snap else {
+            // Nothing new to draw (lockstep idles): hand the last frame to readers that joined
+            // since, so they need not wait for the scene to change.
+            idle += 1;
+            if idle.is_multiple_of(10) {
+                use iceoryx2::port::update_connections::UpdateConnections;
+                for p in &publishers {
+                    let _ = p.update_connections();
+                }
+                let _ = wake.notify();
+            }
             std::thread::sleep(Duration::from_millis(2));
             continue;
         };

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use controllers::math;
 use controllers::RobotModel;
 use ipc_schema::{JointCommand, Pose, SimState, N_JOINTS};
-use mujoco_rs::mujoco_c::{mj_forward, mj_resetData};
+use mujoco_rs::mujoco_c::{mj_contactForce, mj_forward, mj_resetData};
 use mujoco_rs::prelude::*;
 
 use crate::mjcf;
@@ -46,6 +46,8 @@ pub struct Layout {
     pub fixture_joints: Vec<(String, usize, f64)>,
     /// Owner (index into [`Sim::owners`]) of every geom; u16::MAX for none.
     pub geom_owner: Vec<u16>,
+    /// The owner id of the robot's geoms.
+    pub robot_owner: u16,
 }
 
 pub struct Sim {
@@ -96,6 +98,7 @@ impl Sim {
             objects: Vec::new(),
             fixture_joints: Vec::new(),
             geom_owner: Vec::new(),
+            robot_owner: u16::MAX,
         };
         let f = m.ffi();
         // SAFETY: the address arrays hold njnt entries and the ids come from name lookups.
@@ -151,6 +154,7 @@ impl Sim {
             )
         };
         let robot_owner = owner_of_name("robot").unwrap_or(u16::MAX);
+        layout.robot_owner = robot_owner;
         for (g, &b) in geom_body.iter().enumerate() {
             let mut top = b as usize;
             while top != 0 && parent[top] != 0 {
@@ -421,6 +425,38 @@ impl Sim {
         let world_from_tcp = ([site_p[0], site_p[1], site_p[2]], math::quat_from_mat(&m));
         let (p, q) = math::compose(math::inverse(self.world_from_base()), world_from_tcp);
         s.base_from_tcp = Pose { position_m: p, quat_xyzw: q };
+        let (_, world_q) = self.world_from_base();
+        s.external_force_n = math::rotate(math::conj(world_q), self.external_force_world());
         s
+    }
+
+    /// Net force of every active contact between the robot and anything else on the robot, in
+    /// the world frame, N. Forces the robot exerts on itself cancel and are not counted.
+    pub fn external_force_world(&self) -> [f64; 3] {
+        let (m, d) = (self.model.ffi(), self.data.ffi());
+        let l = &self.layout;
+        // SAFETY: contact holds ncon entries.
+        let contacts = unsafe { std::slice::from_raw_parts(d.contact, d.ncon.max(0) as usize) };
+        let mut total = [0.0; 3];
+        for (i, c) in contacts.iter().enumerate() {
+            if c.exclude != 0 || c.efc_address < 0 {
+                continue;
+            }
+            let owner = |g: i32| l.geom_owner.get(g as usize).copied().unwrap_or(u16::MAX);
+            let (a, b) = (owner(c.geom[0]), owner(c.geom[1]));
+            // The contact force acts on geom 1 along the frame's normal (from geom 0 to 1).
+            let sign = match (a == l.robot_owner, b == l.robot_owner) {
+                (false, true) => 1.0,
+                (true, false) => -1.0,
+                _ => continue,
+            };
+            let mut f = [0.0; 6];
+            // SAFETY: i < ncon; f has the six entries the function writes.
+            unsafe { mj_contactForce(m, d, i as i32, &mut f) };
+            for (k, t) in total.iter_mut().enumerate() {
+                *t += sign * (c.frame[k] * f[0] + c.frame[3 + k] * f[1] + c.frame[6 + k] * f[2]);
+            }
+        }
+        total
     }
 }

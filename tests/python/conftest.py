@@ -44,8 +44,8 @@ class Instance:
                 self.proc.wait()
 
 
-def _instance(mode: str, tag: str, gym: str = "pick_block_plate") -> Iterator[Instance]:
-    inst = Instance(f"py{os.getpid()}{tag}", mode, gym)
+def _instance(mode: str, tag: str, gym: str = "pick_block_plate", extra: tuple[str, ...] = ()) -> Iterator[Instance]:
+    inst = Instance(f"py{os.getpid()}{tag}", mode, gym, extra)
     previous = os.environ.get("R2G_INSTANCE")
     os.environ["R2G_INSTANCE"] = inst.name
     try:

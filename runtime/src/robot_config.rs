@@ -1,0 +1,166 @@
+//! `config/robot.json`: which profile the runtime follows and the limits it adds on top of the
+//! robot's own (chunk length, step caps, Franka contact thresholds). Parsed strictly: an
+//! unknown key or an unusable value is an error naming the key and what is accepted.
+
+use std::path::Path;
+
+use anyhow::{bail, Context};
+use controllers::LimiterConfig;
+use ipc_schema::{Profile, MAX_CHUNK};
+use serde_json::{Map, Value};
+
+/// Franka profile: contact forces (magnitude of the filtered external force, N) that stop a chunk.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Reflexes {
+    /// Stops the chunk; the arm recovers by itself (`recovered_replan_required`).
+    pub reflex_force_n: f64,
+    /// Stops the chunk and holds the arm until an operator clears it (`operator_required`).
+    pub operator_force_n: f64,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct RobotConfig {
+    pub profile: Profile,
+    pub default_freq_hz: f64,
+    pub max_chunk_waypoints: usize,
+    pub max_joint_step_rad: f64,
+    pub max_tcp_step_m: f64,
+    pub max_tcp_step_rad: f64,
+    pub reflexes: Reflexes,
+}
+
+impl Default for RobotConfig {
+    /// The shipped `robot-skill/config/robot.json`.
+    fn default() -> Self {
+        Self {
+            profile: Profile::Simulation,
+            default_freq_hz: 20.0,
+            max_chunk_waypoints: MAX_CHUNK,
+            max_joint_step_rad: 0.35,
+            max_tcp_step_m: 0.05,
+            max_tcp_step_rad: 0.35,
+            reflexes: Reflexes { reflex_force_n: 30.0, operator_force_n: 80.0 },
+        }
+    }
+}
+
+fn table<'a>(v: &'a Value, what: &str, keys: &[&str]) -> anyhow::Result<&'a Map<String, Value>> {
+    let Some(m) = v.as_object() else { bail!("{what} must be a JSON object") };
+    if let Some(k) = m.keys().find(|k| !keys.contains(&k.as_str())) {
+        bail!("{what} has an unknown key \"{k}\"; accepted: {}", keys.join(", "));
+    }
+    Ok(m)
+}
+
+/// A number from `m[key]` within `lo..=hi`, or `default` when absent.
+fn number(m: &Map<String, Value>, what: &str, key: &str, default: f64, lo: f64, hi: f64) -> anyhow::Result<f64> {
+    let Some(v) = m.get(key) else { return Ok(default) };
+    let Some(x) = v.as_f64() else { bail!("{what}.{key} must be a number, got {v}") };
+    if !(x.is_finite() && (lo..=hi).contains(&x)) {
+        bail!("{what}.{key} = {x} is outside the accepted range [{lo}, {hi}]");
+    }
+    Ok(x)
+}
+
+impl RobotConfig {
+    pub fn parse(text: &str) -> anyhow::Result<Self> {
+        let root: Value = serde_json::from_str(text).context("not valid JSON")?;
+        let top = table(&root, "robot.json", &["profile", "control", "franka"])?;
+        let d = Self::default();
+        let profile = match top.get("profile") {
+            None => bail!("robot.json has no \"profile\": use \"simulation\" or \"franka\""),
+            Some(v) if v == "simulation" => Profile::Simulation,
+            Some(v) if v == "franka" => Profile::Franka,
+            Some(v) => bail!("robot.json \"profile\": {v} is unknown: use \"simulation\" or \"franka\""),
+        };
+        let empty = Value::Object(Map::new());
+        let control = table(
+            top.get("control").unwrap_or(&empty),
+            "control",
+            &["default_freq_hz", "max_chunk_waypoints", "max_joint_step_rad", "max_tcp_step_m", "max_tcp_step_rad"],
+        )?;
+        let franka = table(top.get("franka").unwrap_or(&empty), "franka", &["reflex_force_n", "operator_force_n"])?;
+        let chunk =
+            number(control, "control", "max_chunk_waypoints", d.max_chunk_waypoints as f64, 1.0, MAX_CHUNK as f64)?;
+        if chunk.fract() != 0.0 {
+            bail!("control.max_chunk_waypoints = {chunk} must be a whole number");
+        }
+        Ok(Self {
+            profile,
+            default_freq_hz: number(control, "control", "default_freq_hz", d.default_freq_hz, 0.5, 1000.0)?,
+            max_chunk_waypoints: chunk as usize,
+            max_joint_step_rad: number(control, "control", "max_joint_step_rad", d.max_joint_step_rad, 1e-3, 10.0)?,
+            max_tcp_step_m: number(control, "control", "max_tcp_step_m", d.max_tcp_step_m, 1e-4, 5.0)?,
+            max_tcp_step_rad: number(control, "control", "max_tcp_step_rad", d.max_tcp_step_rad, 1e-3, 10.0)?,
+            reflexes: Reflexes {
+                reflex_force_n: number(franka, "franka", "reflex_force_n", d.reflexes.reflex_force_n, 1.0, 1000.0)?,
+                operator_force_n: number(
+                    franka,
+                    "franka",
+                    "operator_force_n",
+                    d.reflexes.operator_force_n,
+                    1.0,
+                    1000.0,
+                )?,
+            },
+        })
+    }
+
+    pub fn load(path: &Path) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        Self::parse(&text).with_context(|| format!("robot config {}", path.display()))
+    }
+
+    /// The limiter settings with this configuration's caps.
+    pub fn limiter(&self) -> LimiterConfig {
+        LimiterConfig {
+            default_freq_hz: self.default_freq_hz,
+            max_chunk: self.max_chunk_waypoints,
+            max_joint_step_rad: self.max_joint_step_rad,
+            max_tcp_step_m: self.max_tcp_step_m,
+            max_tcp_step_rad: self.max_tcp_step_rad,
+            ..LimiterConfig::default()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_shipped_file_is_the_default() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../robot-skill/config/robot.json");
+        assert_eq!(RobotConfig::load(&path).unwrap(), RobotConfig::default());
+    }
+
+    #[test]
+    fn franka_and_partial_files_fill_in_defaults() {
+        let c = RobotConfig::parse(r#"{"profile": "franka", "franka": {"reflex_force_n": 12}}"#).unwrap();
+        assert_eq!(c.profile, Profile::Franka);
+        assert_eq!(c.reflexes.reflex_force_n, 12.0);
+        assert_eq!(c.reflexes.operator_force_n, 80.0);
+        assert_eq!(c.max_tcp_step_m, 0.05);
+    }
+
+    #[test]
+    fn bad_files_name_the_key_and_what_is_accepted() {
+        for (text, want) in [
+            (r#"{"profile": "real"}"#, "\"profile\": \"real\" is unknown"),
+            (r#"{}"#, "no \"profile\""),
+            (r#"{"profile": "simulation", "speed": 2}"#, "unknown key \"speed\""),
+            (
+                r#"{"profile": "simulation", "control": {"max_chunk_waypoints": 1000}}"#,
+                "outside the accepted range [1, 256]",
+            ),
+            (r#"{"profile": "simulation", "control": {"max_chunk_waypoints": 2.5}}"#, "whole number"),
+            (r#"{"profile": "simulation", "control": {"max_tcp_step_m": "far"}}"#, "must be a number"),
+            (r#"{"profile": "simulation", "franka": {"reflex_force_n": -3}}"#, "franka.reflex_force_n = -3"),
+            (r#"{"profile": "simulation", "franka": {"torque": 3}}"#, "unknown key \"torque\""),
+            (r#"{"profile": "#, "not valid JSON"),
+        ] {
+            let e = format!("{:#}", RobotConfig::parse(text).unwrap_err());
+            assert!(e.contains(want), "{text}: {e}");
+        }
+    }
+}
