@@ -49,7 +49,10 @@ def main() -> int:
         err = max(abs(a - b) for a, b in zip(state["joint"], goal))
         worst = max(worst, err)
         fb = state["control_feedback"]
-        print(f"chunk -> {goal}: returned {ok} in {time.monotonic() - t:.2f} s, {fb['status']}, max joint error {err:.5f} rad")
+        print(
+            f"chunk -> {goal}: returned {ok} in {time.monotonic() - t:.2f} s, {fb['status']}, max joint error {err:.5f} rad,"
+            f" first motion {fb['submit_to_first_motion_us'] or 0:.0f} us after submission"
+        )
         if ok != 1:
             print("  reason:", fb["reason"])
             return 1
@@ -77,6 +80,13 @@ def main() -> int:
         with open(path, "wb") as f:
             f.write(png)
         print(f"saved {path} ({len(png)} bytes)")
+    t = time.monotonic()
+    raw = get_state("agentview", raw=True)
+    rgb, depth = raw["image"]["agentview"], raw["depth"]["agentview"]
+    print(
+        f"raw agentview in {(time.monotonic() - t) * 1e6:.0f} us: RGB {rgb.shape} {rgb.dtype}, depth {depth.shape}"
+        f" {depth.dtype}, centre pixel {float(depth[depth.shape[0] // 2, depth.shape[1] // 2]):.3f} m (views into shared memory)"
+    )
     print(f"final joint error: {worst:.5f} rad (worst over {len(targets)} targets)")
     # Ending the episode makes sim-host judge it from its native trace.
     episodes = Path(OUT) / "episodes"

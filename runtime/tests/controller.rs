@@ -36,17 +36,7 @@ fn run(ctl: &mut Controller, state: &mut SimState, req: &Request) -> (ipc_schema
 
 /// Ticks until a reply comes.
 fn finish(ctl: &mut Controller, state: &mut SimState) -> (ipc_schema::Reply, u64) {
-    for tick in 0..60_000 {
-        let (cmd, reply) = ctl.tick(state);
-        state.seq += 1;
-        state.q_rad = cmd.q_rad;
-        state.dq_rad_s = cmd.dq_rad_s;
-        state.finger_m = cmd.finger_m;
-        if let Some(r) = reply {
-            return (r, tick);
-        }
-    }
-    panic!("no reply in 60 s");
+    finish_pushed(ctl, state, u64::MAX, 0.0)
 }
 
 #[test]

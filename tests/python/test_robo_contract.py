@@ -328,3 +328,48 @@ def test_a_bad_robot_config_stops_r2g_up_with_the_reason(tmp_path: Path) -> None
     )
     assert out.returncode != 0
     assert '"profile": "real-arm" is unknown' in out.stderr and "robot.json" in out.stderr
+
+
+def test_the_type_stubs_describe_the_module_as_built() -> None:
+    import ast
+    import inspect
+
+    tree = ast.parse((ROOT / "agent-host" / "robo.pyi").read_text())
+    funcs: dict[str, list[ast.FunctionDef]] = {}
+    for node in tree.body:
+        if isinstance(node, ast.FunctionDef):
+            funcs.setdefault(node.name, []).append(node)
+    public = {n for n in dir(robo) if not n.startswith("_") and callable(getattr(robo, n)) and n != "Plane"}
+    assert set(funcs) == public, (set(funcs), public)
+    for name, defs in funcs.items():
+        built = list(inspect.signature(getattr(robo, name)).parameters)
+        for d in defs:
+            stub = [a.arg for a in d.args.args + d.args.kwonlyargs]
+            assert stub == built, (name, stub, built)
+    # Every key the stubs promise is in a live state (checked against the module's own output
+    # in the sim fixture's tests); here: the TypedDicts name the contract's keys.
+    classes = {n.name: n for n in tree.body if isinstance(n, ast.ClassDef)}
+    state_keys = {t.target.id for t in classes["_StateBase"].body if isinstance(t, ast.AnnAssign)}
+    assert {"joint", "ee_pose", "gripper", "timestamp", "control_feedback", "effective_safety", "fault"} <= state_keys
+
+
+def stub_keys(name: str) -> set[str]:
+    import ast
+
+    classes = {n.name: n for n in ast.parse((ROOT / "agent-host" / "robo.pyi").read_text()).body if isinstance(n, ast.ClassDef)}
+    keys: set[str] = set()
+    todo = [name]
+    while todo:
+        c = classes[todo.pop()]
+        keys |= {t.target.id for t in c.body if isinstance(t, ast.AnnAssign) and isinstance(t.target, ast.Name)}
+        todo += [b.id for b in c.bases if isinstance(b, ast.Name) and b.id in classes]
+    return keys
+
+
+def test_live_states_have_exactly_the_keys_the_stubs_promise(sim) -> None:
+    plain, raw = robo.get_state(), robo.get_state(raw=True)
+    assert set(plain) == stub_keys("State")
+    assert set(raw) == stub_keys("RawState")
+    assert set(plain["control_feedback"]) == stub_keys("ControlFeedback")
+    assert set(plain["effective_safety"]) == stub_keys("EffectiveSafety")
+    assert set(plain["camera_intrinsics"]["wrist"]) == stub_keys("Intrinsics")
