@@ -80,6 +80,7 @@ def main() -> int:
         with open(path, "wb") as f:
             f.write(png)
         print(f"saved {path} ({len(png)} bytes)")
+    get_state("wrist", raw=True)  # the first raw call imports numpy
     t = time.monotonic()
     raw = get_state("agentview", raw=True)
     rgb, depth = raw["image"]["agentview"], raw["depth"]["agentview"]

@@ -461,7 +461,10 @@ impl Client {
         let nominal_s = (actions.len() as f64 / f).clamp(0.0, 600.0);
         let reply = self.wait_reply(id, Duration::from_secs_f64(60.0 + 4.0 * nominal_s))?;
         let ok = self.finish(reply);
-        self.settle()?;
+        if reply.status != Status::Rejected as u32 {
+            // Something may have moved: images must show the scene after it.
+            self.settle()?;
+        }
         Ok(ok)
     }
 
