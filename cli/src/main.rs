@@ -59,6 +59,28 @@ enum Cmd {
         #[arg(long)]
         robot_config: Option<std::path::PathBuf>,
     },
+    /// Run one program in the sandbox against a live gym (`r2g up ... --instance NAME`) and
+    /// print a JSON result: stdout, stderr, exit, violation, control steps, what was enforced.
+    Exec {
+        file: std::path::PathBuf,
+        #[arg(long, default_value = "default")]
+        instance: String,
+        /// Waypoints the program may post.
+        #[arg(long, default_value_t = 600)]
+        budget: u64,
+        /// Wall-clock limit, s.
+        #[arg(long, default_value_t = 120.0)]
+        wall_s: f64,
+        /// CPU limit, s.
+        #[arg(long, default_value_t = 120)]
+        cpu_s: u64,
+        /// Refuse reset and post_actions (an observation-only turn).
+        #[arg(long)]
+        observe_only: bool,
+        /// Scratch folder (default: a new one under runs/exec/).
+        #[arg(long)]
+        scratch: Option<std::path::PathBuf>,
+    },
     /// Operator only: clear an `operator_required` fault of a running instance (Franka profile),
     /// after checking the arm and its surroundings.
     Clear {
@@ -233,6 +255,9 @@ fn main() {
             up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc)
         }
         Cmd::Clear { instance } => clear::run(&instance),
+        Cmd::Exec { file, instance, budget, wall_s, cpu_s, observe_only, scratch } => {
+            exec(&file, &instance, budget, wall_s, cpu_s, observe_only, scratch)
+        }
         Cmd::Gyms => gyms(),
         Cmd::Replay { gym, seed, do_nothing, out } => replay(&gym, seed, do_nothing, &out),
         Cmd::AuthorDemo { gym } => author::run(&gym).map(|_| 0),
@@ -268,6 +293,32 @@ fn main() {
             std::process::exit(1);
         }
     }
+}
+
+fn exec(
+    file: &std::path::Path,
+    instance: &str,
+    budget: u64,
+    wall_s: f64,
+    cpu_s: u64,
+    observe_only: bool,
+    scratch: Option<std::path::PathBuf>,
+) -> anyhow::Result<i32> {
+    let code = std::fs::read_to_string(file).map_err(|e| anyhow::anyhow!("reading {}: {e}", file.display()))?;
+    let root = launch::gyms_dir().parent().map(std::path::Path::to_path_buf).unwrap_or_default();
+    let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns());
+    let run_dir = root.join("runs").join("exec").join(&stamp);
+    let scratch = scratch.unwrap_or_else(|| run_dir.join("scratch"));
+    let limits = agent::worker::Limits { wall_s, cpu_s, ..Default::default() };
+    let cfg =
+        agent::worker::WorkerConfig { instance: instance.into(), scratch, log_dir: run_dir.join("logs"), root, limits };
+    let mut worker = agent::worker::Worker::new(cfg);
+    let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "program.py".into());
+    let r = worker.run(&code, &name, agent::worker::Budget { control_steps: budget, observe_only })?;
+    let mut v = serde_json::to_value(&r)?;
+    v["sandbox"] = serde_json::to_value(&worker.enforced)?;
+    println!("{v}");
+    Ok(0)
 }
 
 fn gyms() -> anyhow::Result<i32> {

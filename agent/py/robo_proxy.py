@@ -1,0 +1,122 @@
+"""The trusted side of a sandboxed worker's `robo`: holds the real connection to the runtime and
+serves the shim over fd 3 (JSON requests in, pickled results out: the shim trusts us, we never
+unpickle what it sends). The host drives it on stdin/stdout with JSON lines:
+`{"cmd": "begin", "budget": N, "observe_only": bool}` before a program runs and `{"cmd": "end"}`
+after it (answered with the program's robot calls and control steps)."""
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import selectors
+import socket
+import struct
+import sys
+
+import robo
+
+ALLOWED = {"reset", "get_state", "post_actions", "instance"}
+
+
+class Session:
+    def __init__(self) -> None:
+        self.budget = 600
+        self.observe_only = False
+        self.steps = 0
+        self.calls = 0
+        self.refused = 0
+        self.override: dict | None = None
+
+    def refuse(self, reason: str) -> int:
+        self.refused += 1
+        fb = robo.get_state([])["control_feedback"]
+        fb.update(status="rejected", reason=reason, executed=0, request_id=0, submit_to_accept_us=None, submit_to_first_motion_us=None)
+        self.override = fb
+        return 0
+
+    def call(self, req: dict) -> object:
+        fn, args, kwargs = req.get("fn"), req.get("args", []), req.get("kwargs", {})
+        if fn not in ALLOWED or not isinstance(args, list) or not isinstance(kwargs, dict):
+            raise TypeError(f"robo has no function {fn!r}")
+        self.calls += 1
+        if fn == "instance":
+            return robo.instance()
+        if fn == "get_state":
+            cams = args[0] if args else kwargs.pop("cameras", None)
+            if isinstance(cams, dict):
+                cams = {k: tuple(v) if isinstance(v, list) else v for k, v in cams.items()}
+            s = robo.get_state(cams, raw=bool(kwargs.get("raw", False)))
+            if self.override is not None:
+                s["control_feedback"] = dict(self.override)
+            return s
+        if self.observe_only:
+            return self.refuse("this turn is observation-only: reset() and post_actions() are not allowed yet")
+        if fn == "reset":
+            self.override = None
+            return robo.reset()
+        cmd = args[0] if args else None
+        n = len(cmd.get("actions", [])) if isinstance(cmd, dict) and isinstance(cmd.get("actions"), list) else 0
+        if self.steps + n > self.budget:
+            return self.refuse(
+                f"control-step budget spent: this program has used {self.steps} of {self.budget} waypoints and this "
+                f"chunk has {n}; end the program, observe, and continue in the next decision"
+            )
+        self.override = None
+        r = robo.post_actions(cmd)
+        self.steps += n
+        return r
+
+
+def frame(data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + data
+
+
+def main() -> int:
+    sess = Session()
+    shim = socket.socket(fileno=3)
+    shim.setblocking(True)
+    sel = selectors.DefaultSelector()
+    sel.register(shim, selectors.EVENT_READ, "shim")
+    sel.register(sys.stdin, selectors.EVENT_READ, "host")
+    buf = bytearray()
+    print(json.dumps({"ready": True, "instance": robo.instance()}), flush=True)
+    while True:
+        for key, _ in sel.select():
+            if key.data == "host":
+                line = sys.stdin.readline()
+                if not line:
+                    return 0
+                cmd = json.loads(line)
+                if cmd.get("cmd") == "begin":
+                    sess.budget = int(cmd.get("budget", 600))
+                    sess.observe_only = bool(cmd.get("observe_only", False))
+                    sess.steps = sess.calls = sess.refused = 0
+                    print(json.dumps({"ok": True}), flush=True)
+                elif cmd.get("cmd") == "end":
+                    print(json.dumps({"steps": sess.steps, "calls": sess.calls, "refused": sess.refused}), flush=True)
+                continue
+            chunk = shim.recv(1 << 20)
+            if not chunk:
+                sel.unregister(shim)
+                continue
+            buf += chunk
+            while len(buf) >= 4:
+                (n,) = struct.unpack(">I", buf[:4])
+                if n > 64 << 20:
+                    return 1  # a hostile frame: drop the worker's connection
+                if len(buf) < 4 + n:
+                    break
+                body, buf = bytes(buf[4 : 4 + n]), buf[4 + n :]
+                try:
+                    req = json.loads(body)
+                    if not isinstance(req, dict):
+                        raise TypeError("a robo request must be a JSON object")
+                    out = ("ok", sess.call(req))
+                except Exception as e:  # noqa: BLE001 - any error goes back to the program
+                    out = ("raise", (type(e).__name__, str(e)))
+                shim.sendall(frame(pickle.dumps(out, protocol=5)))
+
+
+if __name__ == "__main__":
+    os.environ.pop("PYTHONPATH", None)
+    sys.exit(main())

@@ -1,0 +1,99 @@
+"""The sandboxed worker's main loop: reads stage programs from the host on fd 3, runs each as a
+fresh program (its own globals, `__name__ == "__main__"`) in the scratch folder, and answers
+with what it printed and how it ended. Started by `r2g-sandbox` after confinement; the `robo`
+it offers is the forwarding shim next to this file, not the real extension."""
+from __future__ import annotations
+
+import io
+import json
+import os
+import socket
+import struct
+import sys
+import time
+import traceback
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+CAP = 64 * 1024
+
+
+class Capped(io.TextIOBase):
+    """A text sink that keeps the first CAP characters and counts the rest."""
+
+    def __init__(self) -> None:
+        self.parts: list[str] = []
+        self.size = 0
+        self.dropped = 0
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, s: str) -> int:
+        room = CAP - self.size
+        if room > 0:
+            self.parts.append(s[:room])
+        self.size += min(len(s), max(room, 0))
+        self.dropped += max(0, len(s) - max(room, 0))
+        return len(s)
+
+    def text(self) -> str:
+        out = "".join(self.parts)
+        if self.dropped:
+            out += f"\n[... {self.dropped} more characters not kept]"
+        return out
+
+
+def recv(sock: socket.socket) -> dict | None:
+    head = b""
+    while len(head) < 4:
+        chunk = sock.recv(4 - len(head))
+        if not chunk:
+            return None
+        head += chunk
+    (n,) = struct.unpack(">I", head)
+    body = bytearray()
+    while len(body) < n:
+        chunk = sock.recv(min(65536, n - len(body)))
+        if not chunk:
+            return None
+        body += chunk
+    return json.loads(body)
+
+
+def send(sock: socket.socket, msg: dict) -> None:
+    data = json.dumps(msg).encode()
+    sock.sendall(struct.pack(">I", len(data)) + data)
+
+
+def run(code: str, name: str) -> dict:
+    out, err = Capped(), Capped()
+    saved = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = out, err
+    result: dict = {"exit": "ok"}
+    t0 = time.monotonic()
+    try:
+        exec(compile(code, name, "exec"), {"__name__": "__main__", "__file__": name})
+    except SystemExit as e:
+        result = {"exit": "exit", "code": e.code if isinstance(e.code, int) else (0 if e.code is None else 1)}
+    except BaseException as e:  # noqa: BLE001 - everything the program raises is feedback
+        result = {"exit": "exception", "exc_type": type(e).__name__, "exception": traceback.format_exc(limit=8)}
+    finally:
+        sys.stdout, sys.stderr = saved
+    result.update(stdout=out.text(), stderr=err.text(), wall_s=time.monotonic() - t0)
+    return result
+
+
+def main() -> int:
+    sys.path = [p for p in sys.path if p not in ("", ".")]
+    sys.path.insert(0, os.path.join(HERE, "shim"))
+    ctl = socket.socket(fileno=3)
+    send(ctl, {"ready": True, "pid": os.getpid()})
+    while True:
+        msg = recv(ctl)
+        if msg is None:
+            return 0
+        send(ctl, run(msg["code"], msg.get("name", "stage.py")))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
