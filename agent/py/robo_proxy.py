@@ -5,6 +5,7 @@ unpickle what it sends). The host drives it on stdin/stdout with JSON lines:
 after it (answered with the program's robot calls and control steps)."""
 from __future__ import annotations
 
+import base64
 import json
 import os
 import pickle
@@ -67,6 +68,15 @@ class Session:
         return r
 
 
+def observe(images: bool) -> dict:
+    """For the host's prompts: the numeric state and, optionally, both images as base64 PNG."""
+    s = robo.get_state(None if images else [])
+    pngs = {k: base64.b64encode(v).decode() for k, v in s.pop("image").items()}
+    for k in ("image_timestamp", "camera_intrinsics", "camera_extrinsics"):
+        s.pop(k, None)
+    return {"state": s, "images": pngs}
+
+
 def frame(data: bytes) -> bytes:
     return struct.pack(">I", len(data)) + data
 
@@ -94,6 +104,11 @@ def main() -> int:
                     print(json.dumps({"ok": True}), flush=True)
                 elif cmd.get("cmd") == "end":
                     print(json.dumps({"steps": sess.steps, "calls": sess.calls, "refused": sess.refused}), flush=True)
+                elif cmd.get("cmd") == "observe":
+                    print(json.dumps(observe(bool(cmd.get("images", True)))), flush=True)
+                elif cmd.get("cmd") == "reset":
+                    sess.override = None
+                    print(json.dumps({"ok": robo.reset(), "feedback": robo.get_state([])["control_feedback"]}), flush=True)
                 continue
             chunk = shim.recv(1 << 20)
             if not chunk:

@@ -1,6 +1,9 @@
 #![doc = include_str!("../README.md")]
 
+pub mod episode;
+pub mod llm;
 pub mod sandbox;
+pub mod viewer;
 pub mod worker;
 
 /// A binary next to the running one (test binaries live one level deeper, in deps/).

@@ -208,6 +208,27 @@ const FORBIDDEN: &[i64] = &[
     libc::SYS_quotactl,
 ];
 
+/// Syscalls that change file metadata; refused with EPERM.
+const METADATA: &[i64] = &[
+    libc::SYS_chmod,
+    libc::SYS_fchmod,
+    libc::SYS_fchmodat,
+    libc::SYS_chown,
+    libc::SYS_fchown,
+    libc::SYS_lchown,
+    libc::SYS_fchownat,
+    libc::SYS_utime,
+    libc::SYS_utimes,
+    libc::SYS_utimensat,
+    libc::SYS_futimesat,
+    libc::SYS_setxattr,
+    libc::SYS_lsetxattr,
+    libc::SYS_fsetxattr,
+    libc::SYS_removexattr,
+    libc::SYS_lremovexattr,
+    libc::SYS_fremovexattr,
+];
+
 fn seccomp(out: &mut Enforced) -> anyhow::Result<()> {
     let mut rules: BTreeMap<i64, Vec<SeccompRule>> = FORBIDDEN.iter().map(|&s| (s, Vec::new())).collect();
     // clone: threads only (CLONE_THREAD set); a new process is a violation.
@@ -228,7 +249,17 @@ fn seccomp(out: &mut Enforced) -> anyhow::Result<()> {
         TargetArch::x86_64,
     )?
     .try_into()?;
+    // File metadata (modes, owners, times, extended attributes) is outside landlock's reach:
+    // refused, so a program cannot alter files it may only read.
+    let metadata: BpfProgram = SeccompFilter::new(
+        METADATA.iter().map(|&s| (s, Vec::new())).collect(),
+        SeccompAction::Allow,
+        SeccompAction::Errno(libc::EPERM as u32),
+        TargetArch::x86_64,
+    )?
+    .try_into()?;
     seccompiler::apply_filter(&clone3).context("seccomp (clone3)")?;
+    seccompiler::apply_filter(&metadata).context("seccomp (metadata)")?;
     seccompiler::apply_filter(&kill).context("seccomp")?;
     out.seccomp = true;
     Ok(())

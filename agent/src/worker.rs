@@ -372,6 +372,15 @@ impl Worker {
         serde_json::from_str(&line).context("the robo proxy stopped answering")
     }
 
+    /// A command for the trusted proxy (`observe`, `reset`), starting the worker if needed.
+    pub fn host_cmd(&mut self, v: serde_json::Value) -> anyhow::Result<serde_json::Value> {
+        if self.live.is_none() {
+            self.start()?;
+        }
+        let Some(live) = self.live.as_mut() else { bail!("no worker") };
+        Self::proxy_cmd(live, v)
+    }
+
     /// Runs one program; never fails because of what the program does.
     pub fn run(&mut self, code: &str, name: &str, budget: Budget) -> anyhow::Result<ExecResult> {
         if self.live.is_none() {
@@ -380,13 +389,21 @@ impl Worker {
         let limits = self.cfg.limits.clone();
         let scratch = self.cfg.scratch.clone();
         let log_dir = self.cfg.log_dir.clone();
+        let begin =
+            serde_json::json!({"cmd": "begin", "budget": budget.control_steps, "observe_only": budget.observe_only});
+        let alive = self.live.as_mut().map(|l| Self::proxy_cmd(l, begin.clone()).is_ok());
+        if alive == Some(false) {
+            // The previous program left the worker or its proxy dead: start afresh.
+            if let Some(mut live) = self.live.take() {
+                Self::teardown(&mut live);
+            }
+            self.start()?;
+            let Some(live) = self.live.as_mut() else { bail!("no worker") };
+            Self::proxy_cmd(live, begin)?;
+        }
         let Some(live) = self.live.as_mut() else { bail!("no worker") };
         let raw_before = std::fs::metadata(log_dir.join("worker.out")).map(|m| m.len()).unwrap_or(0)
             + std::fs::metadata(log_dir.join("worker.err")).map(|m| m.len()).unwrap_or(0);
-        Self::proxy_cmd(
-            live,
-            serde_json::json!({"cmd": "begin", "budget": budget.control_steps, "observe_only": budget.observe_only}),
-        )?;
         let t0 = Instant::now();
         send_frame(&mut live.ctl, &serde_json::json!({"code": code, "name": name}))?;
         live.ctl.set_read_timeout(Some(Duration::from_millis(200)))?;
@@ -440,8 +457,17 @@ impl Worker {
             let _ = Self::proxy_cmd(&mut live, serde_json::json!({"cmd": "end"})).map(|v| Self::take_stats(&mut r, &v));
             Self::teardown(&mut live);
         } else {
-            let v = Self::proxy_cmd(live, serde_json::json!({"cmd": "end"}))?;
-            Self::take_stats(&mut r, &v);
+            match Self::proxy_cmd(live, serde_json::json!({"cmd": "end"})) {
+                Ok(v) => Self::take_stats(&mut r, &v),
+                Err(_) => {
+                    // The proxy refused to go on (a malformed or oversized frame from the
+                    // program): the worker's robot connection is gone; both restart.
+                    r.violation = Some("the program sent malformed data to the robot connection; it was cut".into());
+                    if let Some(mut live) = self.live.take() {
+                        Self::teardown(&mut live);
+                    }
+                }
+            }
             if r.violation.is_none() {
                 r.violation = classify(&r, &limits);
             }

@@ -8,6 +8,7 @@ use ipc_schema::process;
 use ipc_schema::Mode;
 use runtime::launch::{self, Instance, UpOptions};
 
+mod agent_cmd;
 mod author;
 mod bench_all;
 mod clear;
@@ -81,6 +82,51 @@ enum Cmd {
         #[arg(long)]
         scratch: Option<std::path::PathBuf>,
     },
+    /// One episode of the stage-code agent loop on a gym this command starts; ends with one JSON
+    /// line (success, responses, tokens, wall time split, run_dir).
+    Episode {
+        gym: String,
+        /// An endpoint TOML file (provider, base_url, model, api_key_env, ...) or "scripted".
+        #[arg(long, default_value = "scripted")]
+        llm: String,
+        /// Wire format for `--llm scripted`: openai or anthropic.
+        #[arg(long, default_value = "openai")]
+        provider: String,
+        #[arg(long, default_value_t = 50)]
+        max_decisions: u32,
+        /// Waypoints one program may post.
+        #[arg(long, default_value_t = 600)]
+        control_steps: u64,
+        /// Run the gym in wall-clock time instead of lockstep.
+        #[arg(long)]
+        wall: bool,
+        /// Run folder (default: runs/episodes/<gym>-<stamp>).
+        #[arg(long)]
+        out: Option<std::path::PathBuf>,
+        #[arg(long)]
+        robot_config: Option<std::path::PathBuf>,
+        /// Wall-clock limit per program, s.
+        #[arg(long, default_value_t = 120.0)]
+        wall_s: f64,
+    },
+    /// Several episodes and their metrics (success rate, responses, tokens, time split).
+    Batch {
+        gym: String,
+        #[arg(long, default_value_t = 3)]
+        episodes: u32,
+        #[arg(long, default_value = "scripted")]
+        llm: String,
+        #[arg(long, default_value = "openai")]
+        provider: String,
+        #[arg(long, default_value_t = 50)]
+        max_decisions: u32,
+        #[arg(long, default_value_t = 600)]
+        control_steps: u64,
+        #[arg(long)]
+        out: Option<std::path::PathBuf>,
+    },
+    /// Write (or rewrite) the static HTML viewer of a run folder.
+    View { run_dir: std::path::PathBuf },
     /// Operator only: clear an `operator_required` fault of a running instance (Franka profile),
     /// after checking the arm and its surroundings.
     Clear {
@@ -255,6 +301,44 @@ fn main() {
             up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc)
         }
         Cmd::Clear { instance } => clear::run(&instance),
+        Cmd::Episode { gym, llm, provider, max_decisions, control_steps, wall, out, robot_config, wall_s } => {
+            let o = agent_cmd::EpisodeOpts {
+                gym,
+                llm,
+                provider,
+                max_decisions,
+                control_steps,
+                lockstep: !wall,
+                out,
+                robot_config,
+                wall_s,
+            };
+            agent_cmd::episode(&o).and_then(|r| {
+                println!("{}", serde_json::to_string(&r)?);
+                Ok(if r.success { 0 } else { 1 })
+            })
+        }
+        Cmd::Batch { gym, episodes, llm, provider, max_decisions, control_steps, out } => {
+            let o = agent_cmd::EpisodeOpts {
+                gym,
+                llm,
+                provider,
+                max_decisions,
+                control_steps,
+                lockstep: true,
+                out,
+                robot_config: None,
+                wall_s: 120.0,
+            };
+            agent_cmd::batch(&o, episodes).and_then(|v| {
+                println!("{v}");
+                Ok(0)
+            })
+        }
+        Cmd::View { run_dir } => agent::viewer::write(&run_dir).map(|p| {
+            println!("{}", p.display());
+            0
+        }),
         Cmd::Exec { file, instance, budget, wall_s, cpu_s, observe_only, scratch } => {
             exec(&file, &instance, budget, wall_s, cpu_s, observe_only, scratch)
         }
