@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs the Debian packages the project needs, only those missing (idempotent).
 set -euo pipefail
-pkgs=(libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libopengl0 pkg-config fonts-dejavu-core g++)
+pkgs=(libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libopengl0 pkg-config fonts-dejavu-core g++ chromium)
 if ! python3 -m venv --help >/dev/null 2>&1; then pkgs+=(python3-venv); fi
 if ! command -v python3 >/dev/null 2>&1; then pkgs+=(python3 python3-venv); fi
 missing=()

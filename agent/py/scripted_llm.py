@@ -67,7 +67,7 @@ SLOW_S = 30.0
 ENDLESS_CHUNK = b" " * (64 * 1024)
 MAX_BODY = 256 * 1024 * 1024
 EXHAUSTED = "<stop>script exhausted</stop>"
-FAULTS = ("429once", "500once", "slow", "malformed", "endless", "nojson")
+FAULTS = ("429once", "500once", "slow", "malformed", "endless", "nojson", "nocache")
 OPENAI_PATH = "/v1/chat/completions"
 ANTHROPIC_PATH = "/v1/messages"
 ANTHROPIC_VERSIONS = ("2023-06-01", "2023-01-01")
@@ -537,7 +537,7 @@ class Handler(BaseHTTPRequestHandler):
         prompt = sum(t for _, t in msgs)
         cached = self.state.cached_prefix(api, msgs)
         completion = _text_tokens(text)
-        no_cache = self.headers.get("x-scripted-no-usage-cache", "").strip() == "1"
+        no_cache = self.headers.get("x-scripted-no-usage-cache", "").strip() == "1" or mode == "nocache"
         if api == "openai":
             usage = {"prompt_tokens": prompt, "completion_tokens": completion,
                      "total_tokens": prompt + completion}
@@ -602,7 +602,7 @@ def main():
     t = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.2}, daemon=True)
     t.start()
     print(f"LISTENING {server.server_address[1]}", flush=True)
-    while not stop.wait(1.0):
+    while not stop.wait(0.2):
         pass
     server.shutdown()
     server.server_close()

@@ -242,10 +242,13 @@ fn collect_memory(scratch: &Path, memory_dir: &Path) -> Vec<String> {
             && name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
             && (name.ends_with(".json") || name.ends_with(".md"));
         let dst = memory_dir.join(&name);
-        if ok_name && e.file_type().is_ok_and(|t| t.is_file()) && !dst.exists() {
-            if std::fs::create_dir_all(memory_dir).is_ok() && std::fs::copy(e.path(), &dst).is_ok() {
-                added.push(name);
-            }
+        if ok_name
+            && e.file_type().is_ok_and(|t| t.is_file())
+            && !dst.exists()
+            && std::fs::create_dir_all(memory_dir).is_ok()
+            && std::fs::copy(e.path(), &dst).is_ok()
+        {
+            added.push(name);
         }
     }
     added
@@ -262,7 +265,7 @@ fn instruction(scene: &Path) -> anyhow::Result<String> {
 }
 
 /// Runs one episode against a running instance; the caller owns the instance.
-pub fn run(cfg: &EpisodeConfig, instance: &str, trace_dir: &Path) -> anyhow::Result<EpisodeResult> {
+pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult> {
     let t0 = Instant::now();
     let task = instruction(&cfg.scene)?;
     let mut rec = Recorder::new(&cfg.run_dir)?;
@@ -388,7 +391,6 @@ pub fn run(cfg: &EpisodeConfig, instance: &str, trace_dir: &Path) -> anyhow::Res
     out.stop_reason = stop_reason;
     out.wall_s = t0.elapsed().as_secs_f64();
     out.overhead_s = (out.wall_s - out.model_s - out.exec_s).max(0.0);
-    let _ = trace_dir;
     Ok(out)
 }
 

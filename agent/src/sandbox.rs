@@ -258,6 +258,29 @@ fn seccomp(out: &mut Enforced) -> anyhow::Result<()> {
         TargetArch::x86_64,
     )?
     .try_into()?;
+    // Calls that act on another process by pid (limits, scheduling, priorities, memory
+    // placement) are refused unless they name the caller itself (pid 0): landlock scopes
+    // signals and ptrace, not these.
+    let other = |arg: u8| SeccompCondition::new(arg, SeccompCmpArgLen::Dword, SeccompCmpOp::Ne, 0);
+    let mut by_pid: BTreeMap<i64, Vec<SeccompRule>> = BTreeMap::new();
+    for (sys, arg) in [
+        (libc::SYS_prlimit64, 0),
+        (libc::SYS_sched_setaffinity, 0),
+        (libc::SYS_sched_setscheduler, 0),
+        (libc::SYS_sched_setparam, 0),
+        (libc::SYS_sched_setattr, 0),
+        (libc::SYS_migrate_pages, 0),
+        (libc::SYS_move_pages, 0),
+        (libc::SYS_setpriority, 1),
+        (libc::SYS_ioprio_set, 1),
+    ] {
+        by_pid.insert(sys, vec![SeccompRule::new(vec![other(arg)?])?]);
+    }
+    by_pid.insert(libc::SYS_kcmp, Vec::new());
+    let by_pid: BpfProgram =
+        SeccompFilter::new(by_pid, SeccompAction::Allow, SeccompAction::Errno(libc::EPERM as u32), TargetArch::x86_64)?
+            .try_into()?;
+    seccompiler::apply_filter(&by_pid).context("seccomp (other processes)")?;
     seccompiler::apply_filter(&clone3).context("seccomp (clone3)")?;
     seccompiler::apply_filter(&metadata).context("seccomp (metadata)")?;
     seccompiler::apply_filter(&kill).context("seccomp")?;

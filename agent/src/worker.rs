@@ -188,6 +188,14 @@ fn make_cgroup(name: &str, pids: u64) -> Option<PathBuf> {
         if !b.join("cgroup.procs").exists() {
             continue;
         }
+        // Leftovers of hosts killed before their teardown: rmdir only removes empty cgroups.
+        if let Ok(rd) = std::fs::read_dir(b) {
+            for e in rd.flatten() {
+                if e.file_name().to_string_lossy().starts_with("r2g-") {
+                    let _ = std::fs::remove_dir(e.path());
+                }
+            }
+        }
         let dir = b.join(format!("r2g-{name}"));
         if std::fs::create_dir(&dir).is_ok() || dir.is_dir() {
             if std::fs::write(dir.join("pids.max"), pids.to_string()).is_ok() {

@@ -45,6 +45,14 @@ impl Scripted {
         if let Some(l) = log {
             cmd.arg("--log").arg(l);
         }
+        // SAFETY: prctl in the child before exec; async-signal-safe.
+        unsafe {
+            use std::os::unix::process::CommandExt;
+            cmd.pre_exec(|| {
+                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM, 0, 0, 0);
+                Ok(())
+            });
+        }
         let mut child = cmd.stdout(Stdio::piped()).stdin(Stdio::null()).spawn().context("starting the scripted LLM")?;
         let mut line = String::new();
         std::io::BufReader::new(child.stdout.take().context("stdout")?).read_line(&mut line)?;
@@ -125,10 +133,8 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
         memory_dir: run_dir.join("memory"),
         skills: String::new(),
     };
-    let result = episode::run(&cfg, &instance, &trace_dir);
+    let result = episode::run(&cfg, &instance);
     // Stopping the instance ends the episode: sim-host judges it from its native trace.
-    let before = std::fs::read_dir(&trace_dir).map(|d| d.count()).unwrap_or(0);
-    let _ = before;
     inst.stop();
     let mut result = result?;
     let eval = episode::newest_verdict(&trace_dir, 0, Duration::from_secs(10))?;

@@ -330,9 +330,9 @@ fn main() {
                 robot_config: None,
                 wall_s: 120.0,
             };
-            agent_cmd::batch(&o, episodes).and_then(|v| {
+            agent_cmd::batch(&o, episodes).map(|v| {
                 println!("{v}");
-                Ok(0)
+                0
             })
         }
         Cmd::View { run_dir } => agent::viewer::write(&run_dir).map(|p| {

@@ -1,0 +1,103 @@
+"""The agent loop offline, end to end: the scripted endpoint (real HTTP on loopback, both wire
+formats) -> stage programs -> sandbox -> live gym -> native evaluator; the run folder it leaves,
+its viewer in headless Chromium, and a run killed with SIGKILL."""
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import R2G
+
+
+def episode(tmp: Path, *extra: str) -> tuple[dict, Path]:
+    run = tmp / "run"
+    out = subprocess.run(
+        [str(R2G), "episode", "pick_block_plate", "--llm", "scripted", "--out", str(run), *extra],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert out.stdout.strip(), out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1]), run
+
+
+@pytest.mark.parametrize("provider", ["openai", "anthropic"])
+def test_the_scripted_conversation_solves_the_gym_through_the_sandbox(provider: str, tmp_path: Path) -> None:
+    r, run = episode(tmp_path, "--provider", provider)
+    assert r["success"] is True, r
+    assert r["evaluation"]["success"] is True
+    assert r["responses"] >= 4 and r["executions"] >= 3
+    assert r["violations"] == 0
+    assert r["tokens_in"] > r["tokens_cached"] > 0 and r["tokens_out"] > 0  # cached counted once, in both formats
+    assert r["wall_s"] >= r["model_s"] + r["exec_s"] - 1e-6 and r["overhead_s"] >= 0
+    assert r["run_dir"] == str(run)
+    # The run folder: config, prompts, every response, code, feedback, images, verdict.
+    rounds = [json.loads(l) for l in (run / "transcript.jsonl").read_text().splitlines()]
+    assert len(rounds) == r["responses"]
+    assert rounds[0]["observe_only"] and not rounds[1]["observe_only"]
+    assert (run / "system_prompt.md").read_text().count("robot-skill/") >= 4
+    assert (run / "rounds/002/stage.py").is_file() and (run / "rounds/002/feedback.txt").is_file()
+    assert (run / "rounds/002/agentview.png").read_bytes()[:4] == b"\x89PNG"
+    assert json.loads((run / "result.json").read_text())["success"] is True
+    # The model never saw the verdict: no prompt mentions it.
+    log = run / "llm-log"
+    requests = sorted(log.glob("request-*.json"))
+    assert requests and not any("eval.json" in p.read_text() or "trace_sha256" in p.read_text() for p in requests)
+
+
+def chromium_dom(html: Path) -> str:
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    assert exe, "chromium is installed by scripts/install-deps.sh"
+    out = subprocess.run(
+        [exe, "--headless", "--no-sandbox", "--disable-gpu", "--allow-file-access-from-files", "--dump-dom", html.as_uri()],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    return out.stdout
+
+
+def test_the_viewer_renders_the_run_in_headless_chromium(tmp_path: Path) -> None:
+    r, run = episode(tmp_path)
+    dom = chromium_dom(run / "index.html")
+    assert "Native verdict: success" in dom
+    assert dom.count('class="round"') == r["responses"]
+    assert dom.count("<img") >= 2 * r["executions"]
+    assert 'class="code"' in dom and "from robo import" in dom
+
+
+def test_a_run_killed_with_sigkill_leaves_a_readable_record(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    proc = subprocess.Popen(
+        [str(R2G), "episode", "pick_block_plate", "--llm", "scripted", "--out", str(run), "--wall"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        transcript = run / "transcript.jsonl"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            if transcript.exists() and len(transcript.read_text().splitlines()) >= 2:
+                break
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = transcript.read_text().splitlines()
+    assert len(lines) >= 2
+    assert all(json.loads(l)["round"] == i + 1 for i, l in enumerate(lines))
+    assert not (run / "result.json").exists()
+    assert not list(run.rglob("*.partial"))  # files are whole or absent
+    view = subprocess.run([str(R2G), "view", str(run)], capture_output=True, text=True, timeout=60)
+    assert view.returncode == 0, view.stderr
+    dom = chromium_dom(run / "index.html")
+    assert "not judged" in dom and dom.count('class="round"') == len(lines)

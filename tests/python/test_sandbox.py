@@ -1,0 +1,89 @@
+"""The hostile-program suite (tests/hostile/): every attack runs through `r2g exec` in the sandbox
+against a live gym, and must be contained and reported while the gym keeps running.
+
+Outer net: each `r2g exec` runs with its own address-space and file-size limits and a timeout,
+so a sandbox bug cannot take the machine down; only processes this test started are signalled.
+"""
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+
+import robo
+from conftest import R2G, ROOT, Instance, _instance
+
+HOSTILE = ROOT / "tests" / "hostile"
+MANIFEST = json.loads((HOSTILE / "manifest.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def gym() -> Iterator[Instance]:
+    yield from _instance("lockstep", "sx")
+
+
+def outer_net() -> None:
+    # Above what the sandbox grants (4 GiB address space, 64 MiB files), below harm.
+    resource.setrlimit(resource.RLIMIT_AS, (6 << 30, 6 << 30))
+    resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 30, 1 << 30))
+
+
+def run(gym: Instance, program: Path, tmp: Path) -> dict:
+    out = subprocess.run(
+        [str(R2G), "exec", str(program), "--instance", gym.name, "--wall-s", "10", "--cpu-s", "5", "--scratch", str(tmp / "scratch")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        preexec_fn=outer_net,
+        env={"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "OPENAI_API_KEY": "sk-test-secret-never-seen"},
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def nonzero(r: dict) -> bool:
+    return r["exit"] in ("exception", "killed") or (r["exit"] == "exit" and r.get("exit_code") not in (0, None))
+
+
+@pytest.mark.parametrize("case", MANIFEST, ids=[c["file"] for c in MANIFEST])
+def test_hostile_program_is_contained(gym, case, tmp_path: Path) -> None:
+    canary = case.get("canary")
+    if canary and os.path.lexists(canary):
+        os.remove(canary)
+    r = run(gym, HOSTILE / case["file"], tmp_path)
+    text = r["stdout"] + r.get("raw_output", "")
+    assert not [l for l in text.splitlines() if l.startswith("ESCAPED:")], (case, r)
+    assert r["sandbox"]["landlock"] == "full" and r["sandbox"]["seccomp"], r["sandbox"]
+    expect = case["expect"]
+    if expect == "violation":
+        assert r["violation"], (case, r)
+    elif expect == "error":
+        assert nonzero(r), (case, r)
+    elif expect == "limit":
+        assert nonzero(r) or r["violation"], (case, r)
+    elif expect == "allowed":
+        assert not nonzero(r) and r["violation"] is None, (case, r)
+    elif expect == "rejected":
+        assert r["exit"] == "ok" and r["violation"] is None, (case, r)
+        assert "BLOCKED:" in r["stdout"], (case, r)
+    else:
+        raise AssertionError(f"unknown expectation {expect}")
+    if canary:
+        assert not os.path.lexists(canary), f"{case['file']} created {canary}"
+    # The gym survived: the test's own robo connection still gets fresh state.
+    assert len(robo.get_state([])["joint"]) == 7
+
+
+def test_the_sandbox_reports_what_it_enforced_and_passes_no_secrets(gym, tmp_path: Path) -> None:
+    prog = tmp_path / "probe.py"
+    prog.write_text("import os\nfrom robo import get_state\nprint(sorted(os.environ))\nprint(len(get_state([])['joint']))\n")
+    r = run(gym, prog, tmp_path)
+    assert r["exit"] == "ok" and r["violation"] is None, r
+    assert "OPENAI_API_KEY" not in r["stdout"] and "7" in r["stdout"].split()[-1]
+    s = r["sandbox"]
+    assert (s["landlock"], s["landlock_abi"], s["seccomp"], s["no_new_privs"], s["capabilities_dropped"]) == ("full", 7, True, True, True)
