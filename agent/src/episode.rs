@@ -278,6 +278,13 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         root: cfg.root.clone(),
         limits: cfg.limits.clone(),
     });
+    // Earlier memory records, readable (as copies) from the program's `memory/` folder.
+    if let Ok(rd) = std::fs::read_dir(&cfg.memory_dir) {
+        std::fs::create_dir_all(scratch.join("memory"))?;
+        for e in rd.flatten().filter(|e| e.file_type().is_ok_and(|t| t.is_file())) {
+            let _ = std::fs::copy(e.path(), scratch.join("memory").join(e.file_name()));
+        }
+    }
     let reset = worker.host_cmd(json!({"cmd": "reset"}))?;
     if reset["ok"] != 1 {
         bail!("reset before the episode failed: {}", reset["feedback"]);
@@ -307,7 +314,13 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
          include a <code> program that only observes. Then wait for the task.",
         state_line(&first["state"])
     ))];
-    parts.extend(images(&first).into_iter().map(|(_, png)| Part::Png(png)));
+    if let Some(Part::Text(t)) = parts.first() {
+        rec.file("rounds/000/prompt.txt", t.as_bytes())?;
+    }
+    for (name, png) in images(&first) {
+        rec.file(&format!("rounds/000/{name}.png"), &png)?;
+        parts.push(Part::Png(png));
+    }
     messages.push(Message { role: Role::User, parts });
     let mut before = first;
     let mut observe_only = true;

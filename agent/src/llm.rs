@@ -348,6 +348,14 @@ mod tests {
     }
 
     #[test]
+    fn the_shipped_endpoint_files_parse() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("endpoints");
+        for f in ["openai.toml", "anthropic.toml", "ollama.toml"] {
+            EndpointConfig::load(&dir.join(f)).unwrap_or_else(|e| panic!("{f}: {e:#}"));
+        }
+    }
+
+    #[test]
     fn configs_are_checked_with_the_reason() {
         let c = |s: &str| {
             toml::from_str::<EndpointConfig>(s)

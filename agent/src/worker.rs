@@ -230,6 +230,7 @@ impl Worker {
             root.join("robot-skill/SKILL.md"),
             root.join("robot-skill/api"),
             root.join("robot-skill/config"),
+            root.join("robot-skill/memory/README.md"),
             PathBuf::from("/usr/lib"),
             PathBuf::from("/usr/share/locale"),
             PathBuf::from("/etc/ld.so.cache"),
@@ -252,6 +253,11 @@ impl Worker {
 
     fn start(&mut self) -> anyhow::Result<()> {
         std::fs::create_dir_all(&self.cfg.scratch)?;
+        // The skill documents, readable from the scratch folder (landlock judges the target).
+        let link = self.cfg.scratch.join("robot-skill");
+        if std::fs::symlink_metadata(&link).is_err() {
+            std::os::unix::fs::symlink(self.cfg.root.join("robot-skill"), &link)?;
+        }
         std::fs::create_dir_all(&self.cfg.log_dir)?;
         self.starts += 1;
         let (robo_host, robo_worker) = UnixStream::pair()?;

@@ -14,18 +14,36 @@ use ipc_schema::Mode;
 use runtime::launch::{self, Instance, UpOptions};
 use serde_json::{json, Value};
 
+#[derive(clap::Args, Debug, Clone)]
 pub struct EpisodeOpts {
+    /// Gym name (see `r2g gyms`), gym folder, or scene file.
     pub gym: String,
-    /// An endpoint TOML file, or "scripted".
+    /// An endpoint TOML file (provider, base_url, model, api_key_env, ...), "scripted" (the
+    /// gym's recorded conversation) or "scripted:<conversation.json>".
+    #[arg(long, default_value = "scripted")]
     pub llm: String,
-    /// Wire format the scripted endpoint is spoken in.
+    /// Wire format for `--llm scripted`: openai or anthropic.
+    #[arg(long, default_value = "openai")]
     pub provider: String,
+    #[arg(long, default_value_t = 50)]
     pub max_decisions: u32,
+    /// Waypoints one program may post.
+    #[arg(long, default_value_t = 600)]
     pub control_steps: u64,
-    pub lockstep: bool,
+    /// Run the gym in wall-clock time instead of lockstep.
+    #[arg(long)]
+    pub wall: bool,
+    /// Run folder (default: runs/episodes/<gym>-<stamp>; for a batch, its folder).
+    #[arg(long)]
     pub out: Option<PathBuf>,
+    #[arg(long)]
     pub robot_config: Option<PathBuf>,
+    /// Wall-clock limit per program, s.
+    #[arg(long, default_value_t = 120.0)]
     pub wall_s: f64,
+    /// Folder of append-only memory records (default: robot-skill/memory).
+    #[arg(long)]
+    pub memory: Option<PathBuf>,
 }
 
 /// The repo's scripted LLM server, replaying a recorded conversation; stopped on drop.
@@ -35,8 +53,8 @@ pub struct Scripted {
 }
 
 impl Scripted {
-    pub fn start(root: &Path, gym: &str, log: Option<&Path>) -> anyhow::Result<Self> {
-        let script = root.join("agent/scripted").join(format!("{gym}.json"));
+    pub fn start(root: &Path, gym: &str, script: Option<&Path>, log: Option<&Path>) -> anyhow::Result<Self> {
+        let script = script.map_or_else(|| root.join("agent/scripted").join(format!("{gym}.json")), Path::to_path_buf);
         if !script.is_file() {
             bail!("no scripted conversation for gym '{gym}' ({} is missing)", script.display());
         }
@@ -87,8 +105,9 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
     let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
     let run_dir = o.out.clone().unwrap_or_else(|| root.join("runs").join("episodes").join(format!("{gym}-{stamp}")));
     std::fs::create_dir_all(&run_dir)?;
-    let (endpoint, _scripted) = if o.llm == "scripted" {
-        let s = Scripted::start(&root, &gym, Some(&run_dir.join("llm-log")))?;
+    let (endpoint, _scripted) = if o.llm == "scripted" || o.llm.starts_with("scripted:") {
+        let script = o.llm.strip_prefix("scripted:").map(Path::new);
+        let s = Scripted::start(&root, &gym, script, Some(&run_dir.join("llm-log")))?;
         // The scripted server checks that a key is sent, like a real endpoint; it is not secret.
         std::env::set_var("R2G_SCRIPTED_KEY", "scripted-key");
         let e = EndpointConfig {
@@ -111,7 +130,7 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
     let opts = UpOptions {
         scene: scene.clone(),
         instance: instance.clone(),
-        mode: if o.lockstep { Mode::Lockstep } else { Mode::Wall },
+        mode: if o.wall { Mode::Wall } else { Mode::Lockstep },
         render_hz: 10.0,
         control_args: Vec::new(),
         sim_args: vec!["--trace-dir".into(), trace_dir.display().to_string()],
@@ -128,9 +147,9 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
         control_steps: o.control_steps,
         limits: agent::worker::Limits { wall_s: o.wall_s, ..Default::default() },
         run_dir: run_dir.clone(),
-        lockstep: o.lockstep,
+        lockstep: !o.wall,
         robot_config: o.robot_config.clone(),
-        memory_dir: run_dir.join("memory"),
+        memory_dir: o.memory.clone().unwrap_or_else(|| root.join("robot-skill/memory")),
         skills: String::new(),
     };
     let result = episode::run(&cfg, &instance);
@@ -151,7 +170,7 @@ pub fn batch(o: &EpisodeOpts, episodes: u32) -> anyhow::Result<Value> {
     let dir = o.out.clone().unwrap_or_else(|| root.join("runs").join("batches").join(format!("{}-{stamp}", o.gym)));
     let mut rows = Vec::new();
     for i in 0..episodes {
-        let e = EpisodeOpts { out: Some(dir.join(format!("episode-{i:03}"))), ..o.clone_opts() };
+        let e = EpisodeOpts { out: Some(dir.join(format!("episode-{i:03}"))), ..o.clone() };
         match episode(&e) {
             Ok(r) => {
                 eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses);
@@ -176,18 +195,102 @@ pub fn batch(o: &EpisodeOpts, episodes: u32) -> anyhow::Result<Value> {
     Ok(summary)
 }
 
-impl EpisodeOpts {
-    fn clone_opts(&self) -> Self {
-        Self {
-            gym: self.gym.clone(),
-            llm: self.llm.clone(),
-            provider: self.provider.clone(),
-            max_decisions: self.max_decisions,
-            control_steps: self.control_steps,
-            lockstep: self.lockstep,
-            out: self.out.clone(),
-            robot_config: self.robot_config.clone(),
-            wall_s: self.wall_s,
+/// The stage programs of a recorded conversation, in order.
+fn scripted_programs(root: &Path, gym: &str) -> anyhow::Result<Vec<String>> {
+    let path = root.join("agent/scripted").join(format!("{gym}.json"));
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&path)?)?;
+    Ok(v["responses"]
+        .as_array()
+        .context("responses")?
+        .iter()
+        .filter_map(|r| r.as_str())
+        .filter_map(|r| episode::Decision::parse(r).code)
+        .collect())
+}
+
+/// `r2g bench agent`: host overhead per decision of the loop (scripted endpoint on loopback, so
+/// model time is tiny and measured), beside the same stage programs run bare (plain Python and
+/// the real `robo`, no sandbox, no LLM, no records) on a fresh instance in the same run.
+pub fn bench_agent(episodes: u32) -> anyhow::Result<Value> {
+    let root = root();
+    let gym = "pick_block_plate";
+    let dir = std::env::temp_dir().join(format!("r2g-bench-agent-{}", std::process::id()));
+    let mut rows = Vec::new();
+    for i in 0..episodes.max(1) {
+        let o = EpisodeOpts {
+            gym: gym.into(),
+            llm: "scripted".into(),
+            provider: if i % 2 == 0 { "openai" } else { "anthropic" }.into(),
+            max_decisions: 50,
+            control_steps: 600,
+            wall: false,
+            out: Some(dir.join(format!("episode-{i}"))),
+            robot_config: None,
+            wall_s: 120.0,
+            memory: Some(dir.join("memory")),
+        };
+        let r = episode(&o)?;
+        if !r.success {
+            bail!("benchmark episode {i} did not succeed: {}", r.stop_reason);
         }
+        rows.push(r);
     }
+    // Baseline: the same programs, bare.
+    let programs = scripted_programs(&root, gym)?;
+    let scratch = dir.join("bare");
+    std::fs::create_dir_all(&scratch)?;
+    let instance = format!("benchagent{}", std::process::id());
+    let opts = UpOptions {
+        scene: launch::resolve_scene(gym)?,
+        instance: instance.clone(),
+        mode: Mode::Lockstep,
+        render_hz: 10.0,
+        control_args: Vec::new(),
+        sim_args: Vec::new(),
+        robot_config: Some(launch::default_robot_config()),
+        ready_timeout: Duration::from_secs(60),
+    };
+    let mut inst = Instance::up(&opts)?;
+    let python = root.join(".venv/bin/python");
+    let run_bare = |code: &str| -> anyhow::Result<f64> {
+        let t0 = std::time::Instant::now();
+        let st = Command::new(&python)
+            .args(["-c", code])
+            .current_dir(&scratch)
+            .env("R2G_INSTANCE", &instance)
+            .stdout(Stdio::null())
+            .status()?;
+        if !st.success() {
+            bail!("a bare stage program failed: {st}");
+        }
+        Ok(t0.elapsed().as_secs_f64())
+    };
+    let bare = run_bare("import robo; assert robo.reset() == 1")
+        .and_then(|_| programs.iter().map(|p| run_bare(p)).sum::<anyhow::Result<f64>>());
+    inst.stop();
+    let bare_s = bare?;
+    let _ = std::fs::remove_dir_all(&dir);
+
+    let mean = |f: &dyn Fn(&EpisodeResult) -> f64| rows.iter().map(f).sum::<f64>() / rows.len() as f64;
+    let per_decision = mean(&|r| (r.wall_s - r.model_s) / f64::from(r.responses.max(1)) * 1e3);
+    let host = mean(&|r| r.overhead_s / f64::from(r.responses.max(1)) * 1e3);
+    let exec = mean(&|r| r.exec_s);
+    let figures = json!({
+        "episodes": rows.len(),
+        "responses": mean(&|r| f64::from(r.responses)),
+        "overhead_per_decision_ms": per_decision,
+        "host_only_per_decision_ms": host,
+        "model_per_decision_ms": mean(&|r| r.model_s / f64::from(r.responses.max(1)) * 1e3),
+        "sandboxed_programs_s": exec,
+        "bare_programs_s": bare_s,
+        "sandbox_over_bare": exec / bare_s,
+        "wall_s": mean(&|r| r.wall_s),
+    });
+    println!("agent loop on {gym}, scripted endpoint on loopback, lockstep ({} episodes)", rows.len());
+    println!("{:<44} {:>10}", "per decision: everything but model time", format!("{per_decision:.1} ms"));
+    println!("{:<44} {:>10}", "per decision: host only (no model, no program)", format!("{host:.1} ms"));
+    println!("{:<44} {:>10}", "stage programs in the sandbox (per episode)", format!("{exec:.2} s"));
+    println!("{:<44} {:>10}", "same programs bare (python + robo)", format!("{bare_s:.2} s"));
+    println!("{figures}");
+    Ok(figures)
 }

@@ -85,45 +85,15 @@ enum Cmd {
     /// One episode of the stage-code agent loop on a gym this command starts; ends with one JSON
     /// line (success, responses, tokens, wall time split, run_dir).
     Episode {
-        gym: String,
-        /// An endpoint TOML file (provider, base_url, model, api_key_env, ...) or "scripted".
-        #[arg(long, default_value = "scripted")]
-        llm: String,
-        /// Wire format for `--llm scripted`: openai or anthropic.
-        #[arg(long, default_value = "openai")]
-        provider: String,
-        #[arg(long, default_value_t = 50)]
-        max_decisions: u32,
-        /// Waypoints one program may post.
-        #[arg(long, default_value_t = 600)]
-        control_steps: u64,
-        /// Run the gym in wall-clock time instead of lockstep.
-        #[arg(long)]
-        wall: bool,
-        /// Run folder (default: runs/episodes/<gym>-<stamp>).
-        #[arg(long)]
-        out: Option<std::path::PathBuf>,
-        #[arg(long)]
-        robot_config: Option<std::path::PathBuf>,
-        /// Wall-clock limit per program, s.
-        #[arg(long, default_value_t = 120.0)]
-        wall_s: f64,
+        #[command(flatten)]
+        opts: agent_cmd::EpisodeOpts,
     },
     /// Several episodes and their metrics (success rate, responses, tokens, time split).
     Batch {
-        gym: String,
         #[arg(long, default_value_t = 3)]
         episodes: u32,
-        #[arg(long, default_value = "scripted")]
-        llm: String,
-        #[arg(long, default_value = "openai")]
-        provider: String,
-        #[arg(long, default_value_t = 50)]
-        max_decisions: u32,
-        #[arg(long, default_value_t = 600)]
-        control_steps: u64,
-        #[arg(long)]
-        out: Option<std::path::PathBuf>,
+        #[command(flatten)]
+        opts: agent_cmd::EpisodeOpts,
     },
     /// Write (or rewrite) the static HTML viewer of a run folder.
     View { run_dir: std::path::PathBuf },
@@ -216,6 +186,12 @@ enum BenchCmd {
         #[arg(long, default_value = "pick_block_plate")]
         gym: String,
     },
+    /// Host overhead per decision of the agent loop (scripted endpoint), beside the same stage
+    /// programs run bare.
+    Agent {
+        #[arg(long, default_value_t = 3)]
+        episodes: u32,
+    },
     /// The same as `tick` under an agent's load: a Python program polls get_state (with both
     /// PNG images) and posts joint chunks through `robo` the whole time.
     Jitter {
@@ -301,40 +277,14 @@ fn main() {
             up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc)
         }
         Cmd::Clear { instance } => clear::run(&instance),
-        Cmd::Episode { gym, llm, provider, max_decisions, control_steps, wall, out, robot_config, wall_s } => {
-            let o = agent_cmd::EpisodeOpts {
-                gym,
-                llm,
-                provider,
-                max_decisions,
-                control_steps,
-                lockstep: !wall,
-                out,
-                robot_config,
-                wall_s,
-            };
-            agent_cmd::episode(&o).and_then(|r| {
-                println!("{}", serde_json::to_string(&r)?);
-                Ok(if r.success { 0 } else { 1 })
-            })
-        }
-        Cmd::Batch { gym, episodes, llm, provider, max_decisions, control_steps, out } => {
-            let o = agent_cmd::EpisodeOpts {
-                gym,
-                llm,
-                provider,
-                max_decisions,
-                control_steps,
-                lockstep: true,
-                out,
-                robot_config: None,
-                wall_s: 120.0,
-            };
-            agent_cmd::batch(&o, episodes).map(|v| {
-                println!("{v}");
-                0
-            })
-        }
+        Cmd::Episode { opts } => agent_cmd::episode(&opts).and_then(|r| {
+            println!("{}", serde_json::to_string(&r)?);
+            Ok(if r.success { 0 } else { 1 })
+        }),
+        Cmd::Batch { episodes, opts } => agent_cmd::batch(&opts, episodes).map(|v| {
+            println!("{v}");
+            0
+        }),
         Cmd::View { run_dir } => agent::viewer::write(&run_dir).map(|p| {
             println!("{}", p.display());
             0
@@ -352,6 +302,7 @@ fn main() {
         Cmd::Bench { which: BenchCmd::Tick { seconds, gym } } => bench::tick::run(&gym, seconds, false).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Jitter { seconds, gym } } => bench::tick::run(&gym, seconds, true).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Robo { samples, gym } } => bench::robo::run(&gym, samples).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::Agent { episodes } } => agent_cmd::bench_agent(episodes).map(|_| 0),
         Cmd::Bench { which: BenchCmd::All { jitter_seconds, out, quick } } => {
             bench_all::run(jitter_seconds, &out, quick).map(|_| 0)
         }

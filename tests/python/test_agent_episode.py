@@ -101,3 +101,50 @@ def test_a_run_killed_with_sigkill_leaves_a_readable_record(tmp_path: Path) -> N
     assert view.returncode == 0, view.stderr
     dom = chromium_dom(run / "index.html")
     assert "not judged" in dom and dom.count('class="round"') == len(lines)
+
+
+def test_memory_records_are_append_only_and_readable_next_episode(tmp_path: Path) -> None:
+    memory = tmp_path / "memory"
+    memory.mkdir()
+    old = memory / "20260101T000000Z-00000000-0000-4000-8000-000000000000.json"
+    old.write_text('{"kind": "warmup", "content": "original"}')
+    stage = (
+        "import json, os, uuid, datetime\n"
+        "names = sorted(os.listdir('memory'))\n"
+        "print('seen', names)\n"
+        "stamp = datetime.datetime.now(datetime.timezone.utc).strftime('%Y%m%dT%H%M%SZ')\n"
+        "json.dump({'kind': 'observation', 'content': 'new'}, open(f'memory/{stamp}-{uuid.uuid4()}.json', 'w'))\n"
+        "open('memory/' + names[0], 'w').write('overwritten')\n"
+    )
+    conv = tmp_path / "conversation.json"
+    conv.write_text(json.dumps({"gym": "pick_block_plate", "responses": [
+        "<observation>start</observation>",
+        f"<observation>x</observation><plan>write memory</plan><code>\n{stage}\n</code><expected>a record</expected>",
+        "<observation>done</observation><stop>memory written</stop>",
+    ]}))
+    run = tmp_path / "run"
+    out = subprocess.run(
+        [str(R2G), "episode", "pick_block_plate", "--llm", f"scripted:{conv}", "--out", str(run), "--memory", str(memory)],
+        capture_output=True, text=True, timeout=300,
+    )
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["responses"] == 3 and r["stop_reason"] == "memory written", r
+    rounds = [json.loads(l) for l in (run / "transcript.jsonl").read_text().splitlines()]
+    assert old.name in rounds[1]["exec"]["stdout"]  # earlier records are readable
+    assert len(rounds[1]["memory_added"]) == 1
+    records = sorted(p.name for p in memory.iterdir())
+    assert len(records) == 2 and old.name in records
+    assert old.read_text() == '{"kind": "warmup", "content": "original"}'  # never overwritten
+
+
+def test_a_batch_reports_success_rate_tokens_and_the_time_split(tmp_path: Path) -> None:
+    out = subprocess.run(
+        [str(R2G), "batch", "pick_block_plate", "--episodes", "2", "--out", str(tmp_path / "b"), "--memory", str(tmp_path / "m")],
+        capture_output=True, text=True, timeout=600,
+    )
+    b = json.loads(out.stdout.strip().splitlines()[-1])
+    assert b["episodes"] == 2 and b["success_rate"] == 1.0, b
+    assert b["tokens_in"] > b["tokens_cached"] > 0 and b["tokens_out"] > 0
+    assert b["wall_s"] >= b["model_s"] + b["exec_s"] - 1e-6
+    assert json.loads((tmp_path / "b" / "batch.json").read_text())["success_rate"] == 1.0
+    assert all((tmp_path / "b" / f"episode-{i:03}" / "index.html").is_file() for i in range(2))
