@@ -34,14 +34,6 @@ llm="${R2G_LLM:-scripted}"
 echo "demo: the stage-code agent loop on pick_block_plate (LLM: $llm), sandboxed, judged natively:"
 rm -rf "$out/agent-run"
 line=$(target/release/r2g episode pick_block_plate --llm "$llm" --out "$out/agent-run" --memory "$out/agent-memory" 2>"$out/agent-run.log" | tail -1)
-echo "$line" | .venv/bin/python -c '
-import json, sys
-v = json.load(sys.stdin)
-print(f"  success {v["success"]}: {v["responses"]} responses, {v["executions"]} programs, {v["violations"]} violations;"
-      f" tokens in {v["tokens_in"]} (cached {v["tokens_cached"]}), out {v["tokens_out"]};"
-      f" wall {v["wall_s"]:.1f} s = model {v["model_s"]:.1f} + programs {v["exec_s"]:.1f} + host {v["overhead_s"]:.2f}")
-print(f"  records and viewer: {v["run_dir"]}/index.html")
-sys.exit(0 if v["success"] else 1)
-' || { echo "  the agent episode failed; see $out/agent-run.log"; rc=1; }
+echo "$line" | .venv/bin/python demo/episode_summary.py || { echo "  the agent episode failed; see $out/agent-run.log"; rc=1; }
 echo "demo: exit $rc"
 exit $rc

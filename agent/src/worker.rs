@@ -253,6 +253,11 @@ impl Worker {
 
     fn start(&mut self) -> anyhow::Result<()> {
         std::fs::create_dir_all(&self.cfg.scratch)?;
+        std::fs::create_dir_all(&self.cfg.log_dir)?;
+        // Landlock rules and the worker's working folder must not depend on our cwd.
+        self.cfg.scratch = std::fs::canonicalize(&self.cfg.scratch)?;
+        self.cfg.log_dir = std::fs::canonicalize(&self.cfg.log_dir)?;
+        self.cfg.root = std::fs::canonicalize(&self.cfg.root)?;
         // The skill documents, readable from the scratch folder (landlock judges the target).
         let link = self.cfg.scratch.join("robot-skill");
         if std::fs::symlink_metadata(&link).is_err() {

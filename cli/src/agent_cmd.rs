@@ -105,6 +105,7 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
     let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
     let run_dir = o.out.clone().unwrap_or_else(|| root.join("runs").join("episodes").join(format!("{gym}-{stamp}")));
     std::fs::create_dir_all(&run_dir)?;
+    let run_dir = std::fs::canonicalize(&run_dir)?;
     let (endpoint, _scripted) = if o.llm == "scripted" || o.llm.starts_with("scripted:") {
         let script = o.llm.strip_prefix("scripted:").map(Path::new);
         let s = Scripted::start(&root, &gym, script, Some(&run_dir.join("llm-log")))?;

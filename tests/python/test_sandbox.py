@@ -87,3 +87,14 @@ def test_the_sandbox_reports_what_it_enforced_and_passes_no_secrets(gym, tmp_pat
     assert "OPENAI_API_KEY" not in r["stdout"] and "7" in r["stdout"].split()[-1]
     s = r["sandbox"]
     assert (s["landlock"], s["landlock_abi"], s["seccomp"], s["no_new_privs"], s["capabilities_dropped"]) == ("full", 7, True, True, True)
+
+
+def test_relative_scratch_paths_work(gym, tmp_path: Path) -> None:
+    (tmp_path / "p.py").write_text("open('note.txt', 'w').write('kept')\nprint('ok')\n")
+    out = subprocess.run(
+        [str(R2G), "exec", "p.py", "--instance", gym.name, "--scratch", "rel/scratch"],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+    )
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["exit"] == "ok" and r["violation"] is None, r
+    assert (tmp_path / "rel" / "scratch" / "note.txt").read_text() == "kept"
