@@ -85,7 +85,8 @@ def run(code: str, name: str) -> dict:
 
 def main() -> int:
     sys.path = [p for p in sys.path if p not in ("", ".")]
-    sys.path.insert(0, os.path.join(HERE, "shim"))
+    sys.path.insert(0, os.path.join(HERE, "lib"))  # robo_perception
+    sys.path.insert(0, os.path.join(HERE, "shim"))  # robo
     ctl = socket.socket(fileno=3)
     send(ctl, {"ready": True, "pid": os.getpid()})
     while True:

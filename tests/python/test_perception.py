@@ -1,10 +1,10 @@
 """Tests for robo_perception: offline geometry checks, then live gyms.
 
-Run:  /work/main/.venv/bin/python -m pytest perception/test_perception.py -s
+Run:  .venv/bin/python -m pytest tests/python/test_perception.py -s
 Live tests start `r2g up <gym> --instance <unique> --mode lockstep` for each gym (all at once,
 stopped with SIGTERM at the end). The scene files are read here only to know where the objects
-really are; the library never sees them. Binaries: $R2G_BIN (default /work/main/target/release/r2g),
-gyms: $R2G_GYMS (default /work/main/gyms).
+really are; the library never sees them. Binaries: $R2G_BIN (default target/release/r2g of this checkout),
+gyms: $R2G_GYMS (default gyms/ of this checkout).
 """
 
 from __future__ import annotations
@@ -24,11 +24,14 @@ import numpy as np
 import pytest
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+ROOT = HERE.parents[1]
+SHIM = ROOT / "agent" / "py" / "lib"
+EXAMPLE = ROOT / "robot-skill" / "examples" / "pick_red_block.py"
+sys.path.insert(0, str(SHIM))
 import robo_perception as rp  # noqa: E402
 
-R2G = Path(os.environ.get("R2G_BIN", "/work/main/target/release/r2g"))
-GYMS_DIR = Path(os.environ.get("R2G_GYMS", "/work/main/gyms"))
+R2G = Path(os.environ.get("R2G_BIN", str(ROOT / "target" / "release" / "r2g")))
+GYMS_DIR = Path(os.environ.get("R2G_GYMS", str(ROOT / "gyms")))
 GYMS = ["pick_block_plate", "stack_bowls", "shelf_plate", "push_to_line", "hang_mug", "microwave_cup"]
 NOUNS = {"box": "block", "cylinder": "cup", "bowl": "bowl", "plate": "plate"}
 RESULTS: dict = {"centroid_err": {}, "timing_ms": {}}
@@ -403,7 +406,7 @@ def test_example_pick_lifts_block(gyms):
     before = rp.select(rp.segment_scene(g.observe()), "red block")
     env = dict(os.environ, R2G_INSTANCE=g.instance)
     t = time.perf_counter()
-    out = subprocess.run([sys.executable, str(HERE / "example_pick.py")], env=env, capture_output=True,
+    out = subprocess.run([sys.executable, str(EXAMPLE)], env=env, capture_output=True,
                          text=True, timeout=120)
     print(f"\n--- example_pick.py ({time.perf_counter() - t:.1f} s) ---\n{out.stdout}{out.stderr}")
     assert out.returncode == 0, out.stdout + out.stderr
@@ -422,15 +425,14 @@ def test_example_pick_lifts_block(gyms):
 
 
 def test_module_runs_in_sandbox(gyms, tmp_path):
-    """The module, pasted into one observation-only stage program, runs under `r2g exec`
-    (the sandbox for generated code: numpy + stdlib, landlock, seccomp)."""
+    """An observation-only stage program imports the module in the sandbox (`r2g exec`: numpy +
+    stdlib, landlock, seccomp) and segments and grasps there."""
     g = gyms["push_to_line"]
     prog = tmp_path / "stage.py"
-    prog.write_text((HERE / "robo_perception.py").read_text() + """
-
-import json, types
+    prog.write_text("""
+import json
+import robo_perception as rp
 from robo import get_state
-rp = types.SimpleNamespace(**globals())
 state = get_state(["agentview", "wrist"], raw=True)
 scene = rp.segment_scene(state)
 obj = rp.select(scene, "green block")

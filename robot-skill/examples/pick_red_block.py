@@ -7,13 +7,14 @@ first step measured from the *measured* TCP pose. Prints one line per stage and 
 
 Run against a live gym (lockstep is repeatable):
     r2g up pick_block_plate --instance demo --mode lockstep &
-    R2G_INSTANCE=demo python perception/example_pick.py
+    R2G_INSTANCE=demo .venv/bin/python robot-skill/examples/pick_red_block.py
 """
 
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+# In the sandbox robo_perception is importable as is; elsewhere it lives in agent/py/lib.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "agent", "py", "lib"))
 
 import numpy as np  # noqa: E402
 from robo import get_state, post_actions  # noqa: E402
