@@ -44,6 +44,8 @@ class Session:
             return robo.instance()
         if fn == "get_state":
             cams = args[0] if args else kwargs.pop("cameras", None)
+            if isinstance(cams, (list, dict)) and len(cams) > 16:
+                raise ValueError("get_state: at most 16 cameras per call")
             if isinstance(cams, dict):
                 cams = {k: tuple(v) if isinstance(v, list) else v for k, v in cams.items()}
             s = robo.get_state(cams, raw=bool(kwargs.get("raw", False)))
@@ -117,8 +119,8 @@ def main() -> int:
             buf += chunk
             while len(buf) >= 4:
                 (n,) = struct.unpack(">I", buf[:4])
-                if n > 64 << 20:
-                    return 1  # a hostile frame: drop the worker's connection
+                if n > 1 << 20:
+                    return 1  # far more than any robo call needs: drop the worker
                 if len(buf) < 4 + n:
                     break
                 body, buf = bytes(buf[4 : 4 + n]), buf[4 + n :]

@@ -1,6 +1,6 @@
-"""The sandboxed worker's main loop: reads stage programs from the host on fd 3, runs each as a
-fresh program (its own globals, `__name__ == "__main__"`) in the scratch folder, and answers
-with what it printed and how it ended. Started by `r2g-sandbox` after confinement; the `robo`
+"""The sandboxed worker: reads one stage program from the host on fd 3, runs it (its own
+globals, `__name__ == "__main__"`) in the scratch folder, answers with what it printed and how it
+ended, and exits; every program gets a fresh confined process. Started by `r2g-sandbox` after confinement; the `robo`
 it offers is the forwarding shim next to this file, not the real extension."""
 from __future__ import annotations
 
@@ -88,12 +88,13 @@ def main() -> int:
     sys.path.insert(0, os.path.join(HERE, "lib"))  # robo_perception
     sys.path.insert(0, os.path.join(HERE, "shim"))  # robo
     ctl = socket.socket(fileno=3)
-    send(ctl, {"ready": True, "pid": os.getpid()})
-    while True:
-        msg = recv(ctl)
-        if msg is None:
-            return 0
-        send(ctl, run(msg["code"], msg.get("name", "stage.py")))
+    msg = recv(ctl)
+    if msg is None:
+        return 0
+    send(ctl, run(msg["code"], msg.get("name", "stage.py")))
+    ctl.close()
+    # Threads the program left behind end with the process.
+    os._exit(0)
 
 
 if __name__ == "__main__":

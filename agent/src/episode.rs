@@ -231,27 +231,71 @@ impl Recorder {
     }
 }
 
+/// Most memory records one episode may add, and the largest one, bytes.
+const MAX_RECORDS: usize = 50;
+const MAX_RECORD_BYTES: u64 = 64 * 1024;
+
 /// Copies new memory records the worker wrote under `scratch/memory/` to the memory folder,
-/// never overwriting one that exists (records are append-only).
-fn collect_memory(scratch: &Path, memory_dir: &Path) -> Vec<String> {
+/// never overwriting one that exists (records are append-only). Runs while no worker is alive;
+/// follows no links and reads only regular files of a bounded size.
+fn collect_memory(scratch: &Path, memory_dir: &Path, taken: &mut usize) -> Vec<String> {
+    use std::io::Read as _;
+    use std::os::unix::fs::OpenOptionsExt as _;
     let mut added = Vec::new();
-    let Ok(rd) = std::fs::read_dir(scratch.join("memory")) else { return added };
+    let dir = scratch.join("memory");
+    if !std::fs::symlink_metadata(&dir).is_ok_and(|m| m.is_dir()) {
+        return added;
+    }
+    let Ok(rd) = std::fs::read_dir(&dir) else { return added };
     for e in rd.flatten() {
+        if *taken >= MAX_RECORDS {
+            break;
+        }
         let name = e.file_name().to_string_lossy().into_owned();
         let ok_name = name.len() < 120
+            && !name.starts_with('.')
             && name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
             && (name.ends_with(".json") || name.ends_with(".md"));
         let dst = memory_dir.join(&name);
-        if ok_name
-            && e.file_type().is_ok_and(|t| t.is_file())
-            && !dst.exists()
-            && std::fs::create_dir_all(memory_dir).is_ok()
-            && std::fs::copy(e.path(), &dst).is_ok()
-        {
+        if !ok_name || dst.exists() {
+            continue;
+        }
+        let Ok(mut f) =
+            std::fs::OpenOptions::new().read(true).custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK).open(e.path())
+        else {
+            continue;
+        };
+        if !f.metadata().is_ok_and(|m| m.is_file() && m.len() <= MAX_RECORD_BYTES) {
+            continue;
+        }
+        let mut body = Vec::new();
+        if (&mut f).take(MAX_RECORD_BYTES).read_to_end(&mut body).is_err() {
+            continue;
+        }
+        let written = std::fs::create_dir_all(memory_dir).and_then(|_| {
+            let mut out = std::fs::OpenOptions::new().write(true).create_new(true).open(&dst)?;
+            out.write_all(&body)
+        });
+        if written.is_ok() {
+            *taken += 1;
             added.push(name);
         }
     }
     added
+}
+
+/// Keeps images only in the newest `keep` user messages (long episodes would otherwise pass
+/// the endpoints' image and size limits); older ones become a short note.
+fn prune_images(messages: &mut [Message], keep: usize) {
+    let users: Vec<usize> = messages.iter().enumerate().filter(|(_, m)| m.role == Role::User).map(|(i, _)| i).collect();
+    let cut = users.len().saturating_sub(keep);
+    for &i in &users[..cut] {
+        for p in messages[i].parts.iter_mut() {
+            if matches!(p, Part::Png(_)) {
+                *p = Part::Text("[an older camera image, no longer shown]".into());
+            }
+        }
+    }
 }
 
 fn instruction(scene: &Path) -> anyhow::Result<String> {
@@ -278,7 +322,13 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         root: cfg.root.clone(),
         limits: cfg.limits.clone(),
     });
-    // Earlier memory records, readable (as copies) from the program's `memory/` folder.
+    // A fresh scratch folder (a reused run folder may hold what an earlier program planted;
+    // remove_dir_all follows no links), then earlier memory records as copies in `memory/`.
+    if std::fs::symlink_metadata(&scratch).is_ok() {
+        std::fs::remove_dir_all(&scratch).with_context(|| format!("clearing {}", scratch.display()))?;
+    }
+    std::fs::create_dir_all(&scratch)?;
+    let mut records_taken = 0usize;
     if let Ok(rd) = std::fs::read_dir(&cfg.memory_dir) {
         std::fs::create_dir_all(scratch.join("memory"))?;
         for e in rd.flatten().filter(|e| e.file_type().is_ok_and(|t| t.is_file())) {
@@ -330,6 +380,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
             break format!("decision budget of {} spent", cfg.max_decisions);
         }
         let round = out.responses + 1;
+        prune_images(&mut messages, 6);
         let completion = match client.complete(&system, &messages) {
             Ok(c) => c,
             Err(e) => {
@@ -374,7 +425,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
                     rec.file(&format!("{dir}/{name}.png"), &png)?;
                     attach.push(Part::Png(png));
                 }
-                let memory = collect_memory(&scratch, &cfg.memory_dir);
+                let memory = collect_memory(&scratch, &cfg.memory_dir, &mut records_taken);
                 record["exec"] = serde_json::to_value(&r)?;
                 record["state_after"] = after["state"].clone();
                 record["memory_added"] = json!(memory);

@@ -247,7 +247,8 @@ impl Client {
                         .headers()
                         .get("retry-after")
                         .and_then(|v| v.to_str().ok())
-                        .and_then(|v| v.trim().parse::<f64>().ok());
+                        .and_then(|v| v.trim().parse::<f64>().ok())
+                        .filter(|s| s.is_finite());
                     let text = resp.into_body().with_config().limit(MAX_BODY).read_to_string();
                     match (status, text) {
                         (200, Ok(text)) => return self.parse(&url, &text, attempt, t0),

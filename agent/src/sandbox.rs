@@ -206,6 +206,21 @@ const FORBIDDEN: &[i64] = &[
     libc::SYS_settimeofday,
     libc::SYS_clock_settime,
     libc::SYS_quotactl,
+    // System V IPC outlives the worker and escapes its limits.
+    libc::SYS_shmget,
+    libc::SYS_shmat,
+    libc::SYS_shmdt,
+    libc::SYS_shmctl,
+    libc::SYS_msgget,
+    libc::SYS_msgsnd,
+    libc::SYS_msgrcv,
+    libc::SYS_msgctl,
+    libc::SYS_semget,
+    libc::SYS_semop,
+    libc::SYS_semtimedop,
+    libc::SYS_semctl,
+    libc::SYS_mq_open,
+    libc::SYS_mq_unlink,
 ];
 
 /// Syscalls that change file metadata; refused with EPERM.
@@ -275,6 +290,13 @@ fn seccomp(out: &mut Enforced) -> anyhow::Result<()> {
         (libc::SYS_ioprio_set, 1),
     ] {
         by_pid.insert(sys, vec![SeccompRule::new(vec![other(arg)?])?]);
+    }
+    // Priorities of a whole process group or user (which includes the host) are refused too.
+    for (sys, kind) in
+        [(libc::SYS_setpriority, 0u64 /* PRIO_PROCESS */), (libc::SYS_ioprio_set, 1 /* IOPRIO_WHO_PROCESS */)]
+    {
+        let other_kind = SeccompCondition::new(0, SeccompCmpArgLen::Dword, SeccompCmpOp::Ne, kind)?;
+        by_pid.entry(sys).or_default().push(SeccompRule::new(vec![other_kind])?);
     }
     by_pid.insert(libc::SYS_kcmp, Vec::new());
     let by_pid: BpfProgram =

@@ -34,8 +34,9 @@ pub fn write(dir: &Path) -> anyhow::Result<std::path::PathBuf> {
         .collect();
     let data = json!({"config": read_json(&dir.join("config.json")), "result": read_json(&dir.join("result.json")),
                       "rounds": rounds});
-    // `</` must not end the script element early.
-    let blob = serde_json::to_string(&data)?.replace("</", "<\\/");
+    // No `<`, `>` or `&` in the data block: model or program text cannot end it or change how
+    // the HTML parser reads it (JSON allows the \u escapes).
+    let blob = serde_json::to_string(&data)?.replace('<', "\\u003c").replace('>', "\\u003e").replace('&', "\\u0026");
     let html = format!("{HEAD}<script id=\"data\" type=\"application/json\">{blob}</script>{SCRIPT}</body></html>\n");
     let path = dir.join("index.html");
     std::fs::write(&path, html)?;

@@ -92,20 +92,65 @@ pub struct ExecResult {
     pub raw_output: String,
 }
 
-struct Live {
-    worker: Child,
-    pgid: i32,
-    ctl: UnixStream,
-    proxy: Child,
-    proxy_in: ChildStdin,
-    proxy_out: BufReader<ChildStdout>,
-    cgroup: Option<PathBuf>,
+/// The trusted proxy: a Python process holding the real `robo` connection.
+struct Proxy {
+    child: Child,
+    input: ChildStdin,
+    output: BufReader<ChildStdout>,
+}
+
+impl Proxy {
+    /// A JSON command and its one-line answer, within `timeout`.
+    fn cmd(&mut self, v: &serde_json::Value, timeout: Duration) -> anyhow::Result<serde_json::Value> {
+        writeln!(self.input, "{v}")?;
+        self.input.flush()?;
+        let line = read_line_within(&mut self.output, timeout)?;
+        serde_json::from_str(&line).context("the robo proxy answered nonsense")
+    }
+
+    fn stop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Proxy {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// Reads one line, failing after `timeout` (a proxy stuck on its worker must not hang us).
+fn read_line_within(r: &mut BufReader<ChildStdout>, timeout: Duration) -> anyhow::Result<String> {
+    let deadline = Instant::now() + timeout;
+    let mut line = Vec::new();
+    loop {
+        if let Some(i) = r.buffer().iter().position(|&b| b == b'\n') {
+            line.extend_from_slice(&r.buffer()[..=i]);
+            r.consume(i + 1);
+            return Ok(String::from_utf8_lossy(&line).into_owned());
+        }
+        let buffered = r.buffer().to_vec();
+        line.extend_from_slice(&buffered);
+        r.consume(buffered.len());
+        let left = deadline.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            bail!("the robo proxy did not answer within {:.0} s", timeout.as_secs_f64());
+        }
+        let mut pfd = libc::pollfd { fd: r.get_ref().as_raw_fd(), events: libc::POLLIN, revents: 0 };
+        // SAFETY: one valid pollfd.
+        let n = unsafe { libc::poll(&mut pfd, 1, left.as_millis().min(i32::MAX as u128) as i32) };
+        if n > 0 && r.fill_buf()?.is_empty() {
+            bail!("the robo proxy exited");
+        }
+    }
 }
 
 pub struct Worker {
     cfg: WorkerConfig,
-    live: Option<Live>,
-    /// What the kernel enforced on the current worker.
+    /// The proxy the host itself uses between programs (observations, resets).
+    host: Option<Proxy>,
+    /// What the kernel enforced on the last worker.
     pub enforced: Option<Enforced>,
     pub starts: u32,
 }
@@ -126,11 +171,16 @@ fn pass_fds(cmd: &mut Command, fds: Vec<(OwnedFd, RawFd)>) {
     // SAFETY: dup2 is async-signal-safe; the descriptors stay open until spawn returns.
     unsafe {
         cmd.pre_exec(move || {
+            let mut top = 2;
             for (from, to) in &fds {
                 if libc::dup2(from.as_raw_fd(), *to) < 0 {
                     return Err(std::io::Error::last_os_error());
                 }
+                top = top.max(*to);
             }
+            // Nothing else we inherited reaches the child (close-on-exec, so that the standard
+            // library's exec-error pipe keeps working until exec).
+            libc::syscall(libc::SYS_close_range, (top + 1) as u32, u32::MAX, 4u32 /* CLOSE_RANGE_CLOEXEC */);
             Ok(())
         });
     }
@@ -140,18 +190,6 @@ fn send_frame(s: &mut UnixStream, v: &serde_json::Value) -> std::io::Result<()> 
     let data = serde_json::to_vec(v).map_err(std::io::Error::other)?;
     s.write_all(&(data.len() as u32).to_be_bytes())?;
     s.write_all(&data)
-}
-
-fn recv_frame(s: &mut UnixStream) -> std::io::Result<serde_json::Value> {
-    let mut head = [0u8; 4];
-    s.read_exact(&mut head)?;
-    let n = u32::from_be_bytes(head) as usize;
-    if n > 16 << 20 {
-        return Err(std::io::Error::other("oversized reply from the worker"));
-    }
-    let mut body = vec![0u8; n];
-    s.read_exact(&mut body)?;
-    serde_json::from_slice(&body).map_err(std::io::Error::other)
 }
 
 /// Size and file count of a folder tree, stopping early past the limits.
@@ -188,10 +226,13 @@ fn make_cgroup(name: &str, pids: u64) -> Option<PathBuf> {
         if !b.join("cgroup.procs").exists() {
             continue;
         }
-        // Leftovers of hosts killed before their teardown: rmdir only removes empty cgroups.
+        // Leftovers of hosts killed before their teardown (the host's pid is the second-last
+        // part of the name); rmdir only removes empty cgroups.
         if let Ok(rd) = std::fs::read_dir(b) {
             for e in rd.flatten() {
-                if e.file_name().to_string_lossy().starts_with("r2g-") {
+                let n = e.file_name().to_string_lossy().into_owned();
+                let host: Option<u32> = n.rsplit('-').nth(1).and_then(|p| p.parse().ok());
+                if n.starts_with("r2g-") && host.is_some_and(|p| !Path::new(&format!("/proc/{p}")).exists()) {
                     let _ = std::fs::remove_dir(e.path());
                 }
             }
@@ -209,7 +250,7 @@ fn make_cgroup(name: &str, pids: u64) -> Option<PathBuf> {
 
 impl Worker {
     pub fn new(cfg: WorkerConfig) -> Self {
-        Self { cfg, live: None, enforced: None, starts: 0 }
+        Self { cfg, host: None, enforced: None, starts: 0 }
     }
 
     fn python(&self) -> PathBuf {
@@ -251,7 +292,7 @@ impl Worker {
         })
     }
 
-    fn start(&mut self) -> anyhow::Result<()> {
+    fn prepare(&mut self) -> anyhow::Result<()> {
         std::fs::create_dir_all(&self.cfg.scratch)?;
         std::fs::create_dir_all(&self.cfg.log_dir)?;
         // Landlock rules and the worker's working folder must not depend on our cwd.
@@ -263,47 +304,79 @@ impl Worker {
         if std::fs::symlink_metadata(&link).is_err() {
             std::os::unix::fs::symlink(self.cfg.root.join("robot-skill"), &link)?;
         }
-        std::fs::create_dir_all(&self.cfg.log_dir)?;
-        self.starts += 1;
-        let (robo_host, robo_worker) = UnixStream::pair()?;
-        let (ctl_host, ctl_worker) = UnixStream::pair()?;
-        // The proxy: trusted, but given nothing of the host's environment either.
-        let mut proxy = Command::new(self.python());
-        proxy
-            .args(["-I", "-B"])
+        Ok(())
+    }
+
+    /// Starts a proxy serving `robo` over `robo_end` (fd 3 in the proxy).
+    fn spawn_proxy(&self, robo_end: &UnixStream) -> anyhow::Result<Proxy> {
+        let mut cmd = Command::new(self.python());
+        cmd.args(["-I", "-B"])
             .arg(self.cfg.root.join("agent/py/robo_proxy.py"))
             .env_clear()
             .env("R2G_INSTANCE", &self.cfg.instance)
             .env("PATH", "/usr/bin:/bin")
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
-            .stderr(std::fs::File::create(self.cfg.log_dir.join("proxy.log"))?);
-        pass_fds(&mut proxy, vec![(high(robo_host.as_raw_fd())?, 3)]);
+            .stderr(std::fs::OpenOptions::new().create(true).append(true).open(self.cfg.log_dir.join("proxy.log"))?);
+        pass_fds(&mut cmd, vec![(high(robo_end.as_raw_fd())?, 3)]);
         // SAFETY: prctl in the child before exec; async-signal-safe.
         unsafe {
-            proxy.pre_exec(|| {
+            cmd.pre_exec(|| {
                 libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL, 0, 0, 0);
                 Ok(())
             });
         }
-        let mut proxy = proxy.spawn().context("starting the robo proxy")?;
-        drop(robo_host);
-        let proxy_in = proxy.stdin.take().context("proxy stdin")?;
-        let mut proxy_out = BufReader::new(proxy.stdout.take().context("proxy stdout")?);
-        let mut line = String::new();
-        proxy_out.read_line(&mut line)?;
-        if !line.contains("\"ready\"") {
-            let _ = proxy.kill();
-            let _ = proxy.wait();
+        let mut child = cmd.spawn().context("starting the robo proxy")?;
+        drop(cmd);
+        let input = child.stdin.take().context("proxy stdin")?;
+        let output = BufReader::new(child.stdout.take().context("proxy stdout")?);
+        let mut p = Proxy { child, input, output };
+        let line = read_line_within(&mut p.output, Duration::from_secs(30));
+        if !line.as_ref().is_ok_and(|l| l.contains("\"ready\"")) {
             bail!("the robo proxy did not start: {}", tail(&self.cfg.log_dir.join("proxy.log"), 600).trim());
         }
+        Ok(p)
+    }
 
-        let name = format!("{}-{}-{}", self.cfg.instance, std::process::id(), self.starts);
-        let cgroup = make_cgroup(&name, self.cfg.limits.pids);
+    /// A command for the host's own proxy (`observe`, `reset`).
+    pub fn host_cmd(&mut self, v: serde_json::Value) -> anyhow::Result<serde_json::Value> {
+        if self.host.is_none() {
+            self.prepare()?;
+            let (ours, _unused) = UnixStream::pair()?;
+            self.host = Some(self.spawn_proxy(&ours)?);
+        }
+        let Some(p) = self.host.as_mut() else { bail!("no proxy") };
+        match p.cmd(&v, Duration::from_secs(60)) {
+            Ok(r) => Ok(r),
+            Err(e) => {
+                self.host = None;
+                Err(e)
+            }
+        }
+    }
+
+    /// Runs one program in a fresh confined worker with its own proxy; never fails because of
+    /// what the program does. The worker is gone when this returns.
+    pub fn run(&mut self, code: &str, name: &str, budget: Budget) -> anyhow::Result<ExecResult> {
+        self.prepare()?;
+        self.starts += 1;
+        let limits = self.cfg.limits.clone();
+        let (robo_host, robo_worker) = UnixStream::pair()?;
+        let (mut ctl, ctl_worker) = UnixStream::pair()?;
+        let mut proxy = self.spawn_proxy(&robo_host)?;
+        drop(robo_host);
+        proxy.cmd(
+            &serde_json::json!({"cmd": "begin", "budget": budget.control_steps, "observe_only": budget.observe_only}),
+            Duration::from_secs(30),
+        )?;
+
+        let name_cg = format!("{}-{}-{}", self.cfg.instance, std::process::id(), self.starts);
+        let cgroup = make_cgroup(&name_cg, limits.pids);
         let policy = serde_json::to_string(&self.policy(cgroup.clone())?)?;
         let (status_r, status_w) = std::io::pipe()?;
-        let sandbox = crate::sibling("r2g-sandbox")?;
-        let mut cmd = Command::new(sandbox);
+        let out_path = self.cfg.log_dir.join("worker.out");
+        let err_path = self.cfg.log_dir.join("worker.err");
+        let mut cmd = Command::new(crate::sibling("r2g-sandbox")?);
         cmd.arg(policy)
             .arg("5")
             .arg(self.python())
@@ -318,8 +391,8 @@ impl Worker {
             .env("MALLOC_ARENA_MAX", "2")
             .current_dir(&self.cfg.scratch)
             .stdin(Stdio::null())
-            .stdout(std::fs::File::create(self.cfg.log_dir.join("worker.out"))?)
-            .stderr(std::fs::File::create(self.cfg.log_dir.join("worker.err"))?)
+            .stdout(std::fs::File::create(&out_path)?)
+            .stderr(std::fs::File::create(&err_path)?)
             .process_group(0);
         pass_fds(
             &mut cmd,
@@ -329,24 +402,29 @@ impl Worker {
                 (high(status_w.as_raw_fd())?, 5),
             ],
         );
-        let worker = cmd.spawn();
-        drop((ctl_worker, robo_worker, status_w));
-        let worker = match worker {
-            Ok(w) => w,
-            Err(e) => {
-                let _ = proxy.kill();
-                let _ = proxy.wait();
-                return Err(e).context("starting r2g-sandbox");
+        let spawned = cmd.spawn();
+        // Our copies of the worker's ends go now, so its exit closes them for good.
+        drop((cmd, ctl_worker, robo_worker, status_w));
+        let mut worker = spawned.context("starting r2g-sandbox")?;
+        let pgid = worker.id() as i32;
+        let cleanup = |worker: &mut Child| {
+            // SAFETY: the worker's own process group, which we created; it cannot leave it.
+            unsafe { libc::kill(-pgid, libc::SIGKILL) };
+            let _ = worker.wait();
+            if let Some(cg) = &cgroup {
+                for _ in 0..50 {
+                    if std::fs::remove_dir(cg).is_ok() {
+                        break;
+                    }
+                    std::thread::sleep(Duration::from_millis(10));
+                }
             }
         };
-        let pgid = worker.id() as i32;
-        let mut status = String::new();
-        BufReader::new(status_r).read_line(&mut status)?;
-        let status: serde_json::Value = serde_json::from_str(status.trim()).unwrap_or(serde_json::Value::Null);
-        let mut live = Live { worker, pgid, ctl: ctl_host, proxy, proxy_in, proxy_out, cgroup };
+        // What the kernel enforced (or why nothing ran).
+        let status = read_status(status_r, Duration::from_secs(30));
         let enforced: Option<Enforced> = status.get("enforced").and_then(|e| serde_json::from_value(e.clone()).ok());
         let Some(enforced) = enforced else {
-            Self::teardown(&mut live);
+            cleanup(&mut worker);
             bail!(
                 "the sandbox could not be applied, nothing ran: {}",
                 status.get("error").and_then(|e| e.as_str()).unwrap_or("no status from r2g-sandbox")
@@ -355,85 +433,35 @@ impl Worker {
         for w in &enforced.warnings {
             eprintln!("r2g sandbox WARNING: {w}");
         }
-        live.ctl.set_read_timeout(Some(Duration::from_secs(30)))?;
-        let hello = recv_frame(&mut live.ctl);
-        if hello.is_err() {
-            Self::teardown(&mut live);
-            bail!("the sandboxed worker did not start: {}", tail(&self.cfg.log_dir.join("worker.err"), 800).trim());
-        }
         self.enforced = Some(enforced);
-        self.live = Some(live);
-        Ok(())
-    }
 
-    fn teardown(live: &mut Live) {
-        // SAFETY: signals the worker's own process group, which we created.
-        unsafe { libc::kill(-live.pgid, libc::SIGKILL) };
-        let _ = live.worker.wait();
-        let _ = live.proxy.kill();
-        let _ = live.proxy.wait();
-        if let Some(cg) = &live.cgroup {
-            // Emptied by the kill above; the kernel may take a moment to notice.
-            for _ in 0..50 {
-                if std::fs::remove_dir(cg).is_ok() {
-                    break;
+        // Everything the worker sends is read as it comes, so it never blocks on us.
+        let reader = {
+            let mut r = ctl.try_clone()?;
+            std::thread::spawn(move || {
+                let mut all = Vec::new();
+                let mut buf = [0u8; 65536];
+                while all.len() < 32 << 20 {
+                    match r.read(&mut buf) {
+                        Ok(0) | Err(_) => break,
+                        Ok(n) => all.extend_from_slice(&buf[..n]),
+                    }
                 }
-                std::thread::sleep(Duration::from_millis(10));
-            }
-        }
-    }
-
-    fn proxy_cmd(live: &mut Live, v: serde_json::Value) -> anyhow::Result<serde_json::Value> {
-        writeln!(live.proxy_in, "{v}")?;
-        live.proxy_in.flush()?;
-        let mut line = String::new();
-        live.proxy_out.read_line(&mut line)?;
-        serde_json::from_str(&line).context("the robo proxy stopped answering")
-    }
-
-    /// A command for the trusted proxy (`observe`, `reset`), starting the worker if needed.
-    pub fn host_cmd(&mut self, v: serde_json::Value) -> anyhow::Result<serde_json::Value> {
-        if self.live.is_none() {
-            self.start()?;
-        }
-        let Some(live) = self.live.as_mut() else { bail!("no worker") };
-        Self::proxy_cmd(live, v)
-    }
-
-    /// Runs one program; never fails because of what the program does.
-    pub fn run(&mut self, code: &str, name: &str, budget: Budget) -> anyhow::Result<ExecResult> {
-        if self.live.is_none() {
-            self.start()?;
-        }
-        let limits = self.cfg.limits.clone();
-        let scratch = self.cfg.scratch.clone();
-        let log_dir = self.cfg.log_dir.clone();
-        let begin =
-            serde_json::json!({"cmd": "begin", "budget": budget.control_steps, "observe_only": budget.observe_only});
-        let alive = self.live.as_mut().map(|l| Self::proxy_cmd(l, begin.clone()).is_ok());
-        if alive == Some(false) {
-            // The previous program left the worker or its proxy dead: start afresh.
-            if let Some(mut live) = self.live.take() {
-                Self::teardown(&mut live);
-            }
-            self.start()?;
-            let Some(live) = self.live.as_mut() else { bail!("no worker") };
-            Self::proxy_cmd(live, begin)?;
-        }
-        let Some(live) = self.live.as_mut() else { bail!("no worker") };
-        let raw_before = std::fs::metadata(log_dir.join("worker.out")).map(|m| m.len()).unwrap_or(0)
-            + std::fs::metadata(log_dir.join("worker.err")).map(|m| m.len()).unwrap_or(0);
+                all
+            })
+        };
         let t0 = Instant::now();
-        send_frame(&mut live.ctl, &serde_json::json!({"code": code, "name": name}))?;
-        live.ctl.set_read_timeout(Some(Duration::from_millis(200)))?;
-        let mut killed_for: Option<String> = None;
-        let reply = loop {
-            match recv_frame(&mut live.ctl) {
-                Ok(v) => break Some(v),
-                Err(e) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => {}
-                Err(_) => break None,
+        let sent = send_frame(&mut ctl, &serde_json::json!({"code": code, "name": name}));
+        let mut killed_for: Option<String> = sent.err().map(|e| format!("the worker did not take the program: {e}"));
+        let status = loop {
+            if killed_for.is_some() {
+                cleanup(&mut worker);
+                break None;
             }
-            let (bytes, files) = usage(&scratch, limits.scratch_files);
+            if let Some(st) = worker.try_wait()? {
+                break Some(st);
+            }
+            let (bytes, files) = usage(&self.cfg.scratch, limits.scratch_files);
             if t0.elapsed().as_secs_f64() > limits.wall_s {
                 killed_for = Some(format!("wall-clock limit: the program ran longer than {:.0} s", limits.wall_s));
             } else if bytes > limits.scratch_mb << 20 {
@@ -441,22 +469,29 @@ impl Worker {
             } else if files > limits.scratch_files {
                 killed_for =
                     Some(format!("disk quota: more than {} files in the scratch folder", limits.scratch_files));
-            }
-            if killed_for.is_some() {
-                // SAFETY: the worker's own process group, created by us; it cannot leave it.
-                unsafe { libc::kill(-live.pgid, libc::SIGKILL) };
-                break None;
+            } else {
+                std::thread::sleep(Duration::from_millis(20));
             }
         };
         let wall_s = t0.elapsed().as_secs_f64();
-        let mut r = match reply {
-            Some(v) => serde_json::from_value::<ExecResult>(v.clone()).map(|mut r| {
+        cleanup(&mut worker);
+        let _ = ctl.shutdown(std::net::Shutdown::Both);
+        let bytes = reader.join().unwrap_or_default();
+        // The runner's reply is the last whole frame.
+        let reply = last_frame(&bytes);
+        let clean_exit = status.is_some_and(|s| s.success());
+        let mut r = match (reply, clean_exit) {
+            (Some(v), true) => {
+                let mut r: ExecResult = serde_json::from_value(v.clone()).unwrap_or_else(|e| ExecResult {
+                    exit: "exception".into(),
+                    exception: Some(format!("the worker's reply was not understood: {e}")),
+                    ..ExecResult::default()
+                });
                 r.exit_code = v.get("code").and_then(|c| c.as_i64());
                 r
-            })?,
-            None => {
-                let status = live.worker.wait()?;
-                let violation = killed_for.unwrap_or_else(|| match status.signal() {
+            }
+            _ => {
+                let violation = killed_for.unwrap_or_else(|| match status.and_then(|s| s.signal()) {
                     Some(libc::SIGSYS) => "forbidden system call: the sandbox's seccomp filter killed the worker \
                                            (sockets, new processes, ptrace, mounts and the like are not allowed)"
                         .into(),
@@ -465,38 +500,36 @@ impl Worker {
                     }
                     Some(libc::SIGXFSZ) => format!("file size limit: a file grew past {} MiB", limits.fsize_mb),
                     Some(s) => format!("the worker died from signal {s}"),
-                    None => format!("the worker exited with code {}", status.code().unwrap_or(-1)),
+                    None => format!(
+                        "the worker ended without a result (exit code {})",
+                        status.and_then(|s| s.code()).unwrap_or(-1)
+                    ),
                 });
                 ExecResult { exit: "killed".into(), violation: Some(violation), ..ExecResult::default() }
             }
         };
         r.wall_s = wall_s;
-        if r.exit == "killed" {
-            let mut live = self.live.take().context("live worker")?;
-            let _ = Self::proxy_cmd(&mut live, serde_json::json!({"cmd": "end"})).map(|v| Self::take_stats(&mut r, &v));
-            Self::teardown(&mut live);
-        } else {
-            match Self::proxy_cmd(live, serde_json::json!({"cmd": "end"})) {
-                Ok(v) => Self::take_stats(&mut r, &v),
-                Err(_) => {
-                    // The proxy refused to go on (a malformed or oversized frame from the
-                    // program): the worker's robot connection is gone; both restart.
-                    r.violation = Some("the program sent malformed data to the robot connection; it was cut".into());
-                    if let Some(mut live) = self.live.take() {
-                        Self::teardown(&mut live);
-                    }
+        // Cap what goes back into prompts, whatever the worker claimed.
+        for t in [&mut r.stdout, &mut r.stderr] {
+            cap_text(t, 64 * 1024);
+        }
+        if let Some(e) = r.exception.as_mut() {
+            cap_text(e, 16 * 1024);
+        }
+        match proxy.cmd(&serde_json::json!({"cmd": "end"}), Duration::from_secs(5)) {
+            Ok(v) => Self::take_stats(&mut r, &v),
+            Err(_) => {
+                if r.violation.is_none() {
+                    r.violation = Some("the program jammed its robot connection; it was cut".into());
                 }
             }
-            if r.violation.is_none() {
-                r.violation = classify(&r, &limits);
-            }
         }
-        let out_now = std::fs::metadata(log_dir.join("worker.out")).map(|m| m.len()).unwrap_or(0)
-            + std::fs::metadata(log_dir.join("worker.err")).map(|m| m.len()).unwrap_or(0);
-        if out_now > raw_before {
-            r.raw_output =
-                format!("{}{}", tail(&log_dir.join("worker.out"), 2000), tail(&log_dir.join("worker.err"), 2000));
+        drop(proxy);
+        if r.violation.is_none() {
+            r.violation = classify(&r, &limits);
         }
+        let raw = format!("{}{}", tail(&out_path, 2000), tail(&err_path, 2000));
+        r.raw_output = raw;
         Ok(r)
     }
 
@@ -508,11 +541,43 @@ impl Worker {
     }
 }
 
-impl Drop for Worker {
-    fn drop(&mut self) {
-        if let Some(mut live) = self.live.take() {
-            Self::teardown(&mut live);
+/// Cuts a text to at most `max` bytes at a character boundary, saying so.
+fn cap_text(t: &mut String, max: usize) {
+    if t.len() > max {
+        let mut cut = max;
+        while !t.is_char_boundary(cut) {
+            cut -= 1;
         }
+        t.truncate(cut);
+        t.push_str("\n[... cut]");
+    }
+}
+
+/// The last complete length-prefixed JSON frame in `bytes`.
+fn last_frame(bytes: &[u8]) -> Option<serde_json::Value> {
+    let (mut at, mut last) = (0usize, None);
+    while at + 4 <= bytes.len() {
+        let n = u32::from_be_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]) as usize;
+        let Some(body) = bytes.get(at + 4..at + 4 + n) else { break };
+        if let Ok(v) = serde_json::from_slice::<serde_json::Value>(body) {
+            last = Some(v);
+        }
+        at += 4 + n;
+    }
+    last
+}
+
+/// The sandbox's one status line, or an error object after `timeout`.
+fn read_status(pipe: std::io::PipeReader, timeout: Duration) -> serde_json::Value {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = BufReader::new(pipe).read_line(&mut line);
+        let _ = tx.send(line);
+    });
+    match rx.recv_timeout(timeout) {
+        Ok(line) => serde_json::from_str(line.trim()).unwrap_or(serde_json::Value::Null),
+        Err(_) => serde_json::json!({"error": "r2g-sandbox gave no status in time"}),
     }
 }
 

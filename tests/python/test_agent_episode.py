@@ -148,3 +148,27 @@ def test_a_batch_reports_success_rate_tokens_and_the_time_split(tmp_path: Path) 
     assert b["wall_s"] >= b["model_s"] + b["exec_s"] - 1e-6
     assert json.loads((tmp_path / "b" / "batch.json").read_text())["success_rate"] == 1.0
     assert all((tmp_path / "b" / f"episode-{i:03}" / "index.html").is_file() for i in range(2))
+
+
+def test_memory_collection_follows_no_links_planted_by_a_program(tmp_path: Path) -> None:
+    memory = tmp_path / "memory"
+    stage = (
+        "import os\n"
+        "os.rename('memory', 'old-memory') if os.path.exists('memory') else None\n"
+        "os.symlink('robot-skill/config', 'memory')  # the host must not copy robot.json out\n"
+        "os.makedirs('m2', exist_ok=True)\n"
+        "print('planted')\n"
+    )
+    conv = tmp_path / "conversation.json"
+    conv.write_text(json.dumps({"gym": "pick_block_plate", "responses": [
+        "<observation>start</observation>",
+        f"<observation>x</observation><plan>plant</plan><code>\n{stage}\n</code><expected>-</expected>",
+        "<observation>done</observation><stop>planted</stop>",
+    ]}))
+    out = subprocess.run(
+        [str(R2G), "episode", "pick_block_plate", "--llm", f"scripted:{conv}", "--out", str(tmp_path / "run"), "--memory", str(memory)],
+        capture_output=True, text=True, timeout=300,
+    )
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["responses"] == 3, r
+    assert not memory.exists() or not list(memory.iterdir())
