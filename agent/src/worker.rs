@@ -1,8 +1,8 @@
-//! The host side of a sandboxed worker: one confined Python process per episode that runs
-//! stage programs one after another, plus the trusted `robo` proxy it talks to. Every run is
-//! bounded by the wall clock (the whole process group is killed), a scratch-disk quota and the
-//! worker's own kernel limits; whatever happens, a run ends with an [`ExecResult`] and the host
-//! carries on (a killed worker is restarted for the next program).
+//! The host side of sandboxed execution: each stage program runs in a fresh confined Python
+//! process with its own trusted `robo` proxy, in the episode's scratch folder. The host waits for
+//! the process to exit under the wall clock (killing the whole process group), a scratch-disk
+//! quota and the worker's own kernel limits, and reads its output as it comes; whatever the
+//! program does, the run ends with an [`ExecResult`] and the host carries on.
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
