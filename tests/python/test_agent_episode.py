@@ -103,6 +103,24 @@ def test_a_run_killed_with_sigkill_leaves_a_readable_record(tmp_path: Path) -> N
     assert "not judged" in dom and dom.count('class="round"') == len(lines)
 
 
+def one_stage_episode(tmp: Path, stage: str, stop: str, memory: Path) -> tuple[dict, Path]:
+    """An episode whose scripted model observes, runs `stage` once, then stops with `stop`."""
+    conv = tmp / "conversation.json"
+    conv.write_text(json.dumps({"gym": "pick_block_plate", "responses": [
+        "<observation>start</observation>",
+        f"<observation>x</observation><plan>one stage</plan><code>\n{stage}\n</code><expected>-</expected>",
+        f"<observation>done</observation><stop>{stop}</stop>",
+    ]}))
+    run = tmp / "run"
+    out = subprocess.run(
+        [str(R2G), "episode", "pick_block_plate", "--llm", f"scripted:{conv}", "--out", str(run), "--memory", str(memory)],
+        capture_output=True, text=True, timeout=300,
+    )
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["responses"] == 3 and r["stop_reason"] == stop, r
+    return r, run
+
+
 def test_memory_records_are_append_only_and_readable_next_episode(tmp_path: Path) -> None:
     memory = tmp_path / "memory"
     memory.mkdir()
@@ -116,19 +134,7 @@ def test_memory_records_are_append_only_and_readable_next_episode(tmp_path: Path
         "json.dump({'kind': 'observation', 'content': 'new'}, open(f'memory/{stamp}-{uuid.uuid4()}.json', 'w'))\n"
         "open('memory/' + names[0], 'w').write('overwritten')\n"
     )
-    conv = tmp_path / "conversation.json"
-    conv.write_text(json.dumps({"gym": "pick_block_plate", "responses": [
-        "<observation>start</observation>",
-        f"<observation>x</observation><plan>write memory</plan><code>\n{stage}\n</code><expected>a record</expected>",
-        "<observation>done</observation><stop>memory written</stop>",
-    ]}))
-    run = tmp_path / "run"
-    out = subprocess.run(
-        [str(R2G), "episode", "pick_block_plate", "--llm", f"scripted:{conv}", "--out", str(run), "--memory", str(memory)],
-        capture_output=True, text=True, timeout=300,
-    )
-    r = json.loads(out.stdout.strip().splitlines()[-1])
-    assert r["responses"] == 3 and r["stop_reason"] == "memory written", r
+    _, run = one_stage_episode(tmp_path, stage, "memory written", memory)
     rounds = [json.loads(l) for l in (run / "transcript.jsonl").read_text().splitlines()]
     assert old.name in rounds[1]["exec"]["stdout"]  # earlier records are readable
     assert len(rounds[1]["memory_added"]) == 1
@@ -156,19 +162,9 @@ def test_memory_collection_follows_no_links_planted_by_a_program(tmp_path: Path)
         "import os\n"
         "os.rename('memory', 'old-memory') if os.path.exists('memory') else None\n"
         "os.symlink('robot-skill/config', 'memory')  # the host must not copy robot.json out\n"
-        "os.makedirs('m2', exist_ok=True)\n"
         "print('planted')\n"
     )
-    conv = tmp_path / "conversation.json"
-    conv.write_text(json.dumps({"gym": "pick_block_plate", "responses": [
-        "<observation>start</observation>",
-        f"<observation>x</observation><plan>plant</plan><code>\n{stage}\n</code><expected>-</expected>",
-        "<observation>done</observation><stop>planted</stop>",
-    ]}))
-    out = subprocess.run(
-        [str(R2G), "episode", "pick_block_plate", "--llm", f"scripted:{conv}", "--out", str(tmp_path / "run"), "--memory", str(memory)],
-        capture_output=True, text=True, timeout=300,
-    )
-    r = json.loads(out.stdout.strip().splitlines()[-1])
-    assert r["responses"] == 3, r
+    _, run = one_stage_episode(tmp_path, stage, "planted", memory)
+    rounds = [json.loads(l) for l in (run / "transcript.jsonl").read_text().splitlines()]
+    assert "planted" in rounds[1]["exec"]["stdout"]  # the link really was planted
     assert not memory.exists() or not list(memory.iterdir())
