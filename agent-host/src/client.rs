@@ -134,6 +134,8 @@ pub struct Client {
     /// Simulated time at which the last request finished: images must show the scene from then
     /// on, never mid-motion.
     settled_s: f64,
+    /// The reset_id of the episode that settle saw (frames of earlier episodes are stale).
+    settled_reset: u32,
     /// CLOCK_MONOTONIC when the last chunk was sent, ns.
     submitted_ns: u64,
 }
@@ -225,6 +227,7 @@ impl Client {
             feedback: Feedback::default(),
             last_state_at: Instant::now(),
             settled_s: 0.0,
+            settled_reset: 0,
             submitted_ns: 0,
         };
         c.refresh_state(Duration::from_secs(3))?;
@@ -278,7 +281,7 @@ impl Client {
             };
             return Err(RoboError::UnknownCamera { name: name.into(), known });
         };
-        let not_before_s = self.settled_s;
+        let (not_before_reset, not_before_s) = (self.settled_reset, self.settled_s);
         let t0 = Instant::now();
         loop {
             let cam = &mut self.cameras[i];
@@ -290,7 +293,10 @@ impl Client {
                 cam.last = Some(f);
             }
             if let Some(f) = &cam.last {
-                if f.header().sim_time_s >= not_before_s - 1e-9 || t0.elapsed() >= wait {
+                let h = f.header();
+                let fresh = h.reset_id > not_before_reset
+                    || (h.reset_id == not_before_reset && h.sim_time_s >= not_before_s - 1e-9);
+                if fresh || t0.elapsed() >= wait {
                     return Ok(f.clone());
                 }
             } else if t0.elapsed() >= wait {
@@ -405,6 +411,7 @@ impl Client {
     fn settle(&mut self) -> Result<(), RoboError> {
         let s = self.refresh_state(Duration::from_secs(2))?;
         self.settled_s = s.timestamp_s;
+        self.settled_reset = s.reset_id as u32;
         Ok(())
     }
 
@@ -426,10 +433,6 @@ impl Client {
         let id = self.send(|r| r.kind = RequestKind::Reset as u32)?;
         let reply = self.wait_reply(id, Duration::from_secs(30))?;
         let ok = self.finish(reply);
-        // Frames from before the reset are no longer the newest worth keeping.
-        for c in &mut self.cameras {
-            c.last = None;
-        }
         self.settle()?;
         Ok(ok)
     }

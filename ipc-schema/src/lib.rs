@@ -372,7 +372,9 @@ pub struct CameraFrame {
     pub height: u32,
     /// 1 when `depth_m` holds depth for this frame.
     pub has_depth: u32,
-    pub _pad: u32,
+    /// The [`SimState::reset_id`] (low 32 bits) of the episode this frame shows: simulated time
+    /// starts again at each reset, so freshness is (reset_id, sim_time_s), in that order.
+    pub reset_id: u32,
     /// Pinhole intrinsics in pixels (principal point at the image centre for rendered cameras).
     pub fx: f64,
     pub fy: f64,

@@ -29,6 +29,10 @@ struct Args {
     /// Write the compiled MJCF here and continue (for inspection).
     #[arg(long)]
     dump_mjcf: Option<PathBuf>,
+    /// With --dump-mjcf: exit after writing it, starting nothing (tests render ground truth
+    /// from the very model the sim-host runs).
+    #[arg(long, requires = "dump_mjcf")]
+    exit_after_dump: bool,
     /// Record the native trace and judge each episode (ended by a reset or by stopping) into
     /// this folder. Nothing of it crosses to agents.
     #[arg(long)]
@@ -72,6 +76,9 @@ fn run() -> anyhow::Result<()> {
     let mut sim = Sim::load(&args.scene).with_context(|| format!("loading scene {}", args.scene.display()))?;
     if let Some(p) = &args.dump_mjcf {
         std::fs::write(p, &sim.mjcf).with_context(|| format!("writing {}", p.display()))?;
+        if args.exit_after_dump {
+            return Ok(());
+        }
     }
 
     let node = ipc_schema::node(&process::sim_node(&args.instance))?;
@@ -204,6 +211,7 @@ fn run() -> anyhow::Result<()> {
                 s.qpos.extend_from_slice(sim.qpos());
                 s.sim_time_s = sim.time_s();
                 s.state_seq = seq;
+                s.reset_id = reset_id;
                 snapshot_dirty = false;
             }
         }

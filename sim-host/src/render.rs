@@ -25,6 +25,7 @@ pub struct Snapshot {
     pub qpos: Vec<f64>,
     pub sim_time_s: f64,
     pub state_seq: u64,
+    pub reset_id: u64,
 }
 
 pub struct RenderConfig {
@@ -184,7 +185,7 @@ pub fn run(
                 (*p).width = spec.width;
                 (*p).height = spec.height;
                 (*p).has_depth = u32::from(depth.is_some());
-                (*p)._pad = 0;
+                (*p).reset_id = snap.reset_id as u32;
                 (*p).fx = fx;
                 (*p).fy = fy;
                 (*p).cx = cx;

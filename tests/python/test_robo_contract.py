@@ -125,6 +125,22 @@ def test_images_after_a_chunk_show_the_scene_after_it(sim) -> None:
         assert t >= before + 0.5, (name, t, before)
 
 
+def test_images_right_after_a_reset_show_the_new_episode(sim) -> None:
+    """Simulated time starts again at a reset, so frames of the old episode (queued or in flight,
+    with larger times) must not pass for fresh ones."""
+    for _ in range(3):
+        q = robo.get_state([])["joint"]
+        goal = q[:5] + [q[5] + 0.4] + q[6:]
+        assert robo.post_actions({"actions": joint_ramp(goal, -1.0, 16), "type": "joint", "freq": ""}) == 1, fb()
+        assert robo.reset() == 1
+        s = robo.get_state(["agentview", "wrist"], raw=True)
+        for name, t in s["image_timestamp"].items():
+            assert t <= s["timestamp"] + 1e-9, (name, t, s["timestamp"])
+        home = np.array(s["image"]["wrist"], dtype=int)
+        later = robo.get_state(["wrist"], raw=True)["image"]["wrist"]
+        assert np.abs(home - later).mean() < 1.0  # the same (home) view, not the moved one
+
+
 def test_freq_is_an_upper_bound_on_the_waypoint_rate(sim) -> None:
     assert robo.reset() == 1
 
