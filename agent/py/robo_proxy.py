@@ -2,7 +2,12 @@
 serves the shim over fd 3 (JSON requests in, pickled results out: the shim trusts us, we never
 unpickle what it sends). The host drives it on stdin/stdout with JSON lines:
 `{"cmd": "begin", "budget": N, "observe_only": bool}` before a program runs and `{"cmd": "end"}`
-after it (answered with the program's robot calls and control steps)."""
+after it (answered with the program's robot calls and control steps).
+
+`perception` requests (from robo_services in the program) are served here too: the program names
+a camera and the timestamp of a frame it observed, this process takes that frame's image and depth
+from its own connection, and calls the HTTP services configured in
+robot-skill/config/perception.json (or $R2G_PERCEPTION_CONFIG): the program never picks a URL."""
 from __future__ import annotations
 
 import base64
@@ -16,7 +21,22 @@ import sys
 
 import robo
 
-ALLOWED = {"reset", "get_state", "post_actions", "instance"}
+ALLOWED = {"reset", "get_state", "post_actions", "instance", "perception"}
+FRAMES_KEPT = 4  # raw frames remembered per camera for perception requests
+_services = None
+
+
+def services():
+    """robo_services (agent/py/lib), imported on first use: this process runs isolated (-I)."""
+    global _services
+    if _services is None:
+        lib = os.path.join(os.path.dirname(os.path.abspath(__file__)), "lib")
+        if lib not in sys.path:
+            sys.path.insert(0, lib)
+        import robo_services
+
+        _services = robo_services
+    return _services
 
 
 class Session:
@@ -27,6 +47,35 @@ class Session:
         self.calls = 0
         self.refused = 0
         self.override: dict | None = None
+        # camera -> [(image_timestamp, rgb, depth, intrinsics)]: the raw frames this program was
+        # given, so that a perception request works on exactly the frame the program saw.
+        self.frames: dict[str, list] = {}
+
+    def remember(self, s: dict) -> None:
+        depth = s.get("depth") or {}
+        for cam, img in (s.get("image") or {}).items():
+            if cam in depth and hasattr(img, "shape"):
+                kept = self.frames.setdefault(cam, [])
+                ts = (s.get("image_timestamp") or {}).get(cam)
+                kept.append((ts, img, depth[cam], s["camera_intrinsics"][cam]))
+                del kept[:-FRAMES_KEPT]
+
+    def camera_frame(self, camera: str, ts: float, shape: tuple) -> dict:
+        """The raw frame of `camera` taken at `ts` with (H, W) = `shape`: one this program was
+        given, else the current one if it is still that frame."""
+        for t, img, depth, K in reversed(self.frames.get(camera, [])):
+            if t == ts and tuple(depth.shape) == tuple(shape):
+                return {"image": img, "depth": depth, "intrinsics": K}
+        s = robo.get_state({camera: (shape[1], shape[0])}, raw=True)
+        now = (s.get("image_timestamp") or {}).get(camera)
+        if camera not in (s.get("depth") or {}):
+            raise ValueError(f"perception: camera {camera!r} delivers no depth")
+        if now != ts:
+            raise RuntimeError(
+                f"perception: the {camera} camera frame changed since the program observed it (frame of "
+                f"{ts} s, now {now} s); observe again with get_state(..., raw=True) and retry"
+            )
+        return {"image": s["image"][camera], "depth": s["depth"][camera], "intrinsics": s["camera_intrinsics"][camera]}
 
     def refuse(self, reason: str) -> int:
         self.refused += 1
@@ -48,10 +97,18 @@ class Session:
                 raise ValueError("get_state: at most 16 cameras per call")
             if isinstance(cams, dict):
                 cams = {k: tuple(v) if isinstance(v, list) else v for k, v in cams.items()}
-            s = robo.get_state(cams, raw=bool(kwargs.get("raw", False)))
+            raw = bool(kwargs.get("raw", False))
+            s = robo.get_state(cams, raw=raw)
+            if raw:
+                self.remember(s)
             if self.override is not None:
                 s["control_feedback"] = dict(self.override)
             return s
+        if fn == "perception":
+            # observation only: allowed in observe-only turns; the URLs come from the config
+            if len(args) != 2 or kwargs or not isinstance(args[0], str):
+                raise TypeError("perception(op, payload)")
+            return services().serve_proxy(args[0], args[1], self.camera_frame)
         if self.observe_only:
             return self.refuse("this turn is observation-only: reset() and post_actions() are not allowed yet")
         if fn == "reset":

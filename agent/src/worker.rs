@@ -315,6 +315,8 @@ impl Worker {
             .env_clear()
             .env("R2G_INSTANCE", &self.cfg.instance)
             .env("PATH", "/usr/bin:/bin")
+            // Which perception services the proxy may call for the program (never the program's choice).
+            .envs(std::env::var_os("R2G_PERCEPTION_CONFIG").map(|v| ("R2G_PERCEPTION_CONFIG", v)))
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(std::fs::OpenOptions::new().create(true).append(true).open(self.cfg.log_dir.join("proxy.log"))?);

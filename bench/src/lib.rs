@@ -3,6 +3,7 @@
 pub mod control;
 pub mod ik;
 pub mod ipc;
+pub mod perception;
 pub mod robo;
 pub mod tick;
 

@@ -35,11 +35,5 @@ pub fn run(gym: &str, samples: usize) -> anyhow::Result<Value> {
         .context("running bench/py/robo_bench.py");
     inst.stop();
     let out = out?;
-    let text = String::from_utf8_lossy(&out.stdout);
-    print!("{text}");
-    if !out.status.success() {
-        bail!("robo_bench.py ended with {}", out.status);
-    }
-    let last = text.lines().last().unwrap_or("");
-    serde_json::from_str(last).with_context(|| format!("the last line is not JSON: {last}"))
+    crate::tick::script_figures(&out, "robo_bench.py")
 }

@@ -25,6 +25,17 @@ pub(crate) fn python_script(name: &str) -> anyhow::Result<(std::path::PathBuf, s
     Ok((python, script))
 }
 
+/// Prints a finished bench script's stdout and parses its last line, the JSON figures.
+pub(crate) fn script_figures(out: &std::process::Output, script: &str) -> anyhow::Result<Value> {
+    let text = String::from_utf8_lossy(&out.stdout);
+    print!("{text}");
+    if !out.status.success() {
+        bail!("{script} ended with {}", out.status);
+    }
+    let last = text.lines().last().unwrap_or("");
+    serde_json::from_str(last).with_context(|| format!("the last line of {script} is not JSON: {last}"))
+}
+
 pub fn run(gym: &str, seconds: f64, client: bool) -> anyhow::Result<Value> {
     if !(seconds.is_finite() && seconds > 0.0 && seconds <= 3600.0) {
         bail!("--seconds must be in (0, 3600]");

@@ -22,6 +22,15 @@ fn progress(done: usize, total: usize, what: &str, started: Instant) {
     let _ = std::io::stderr().flush();
 }
 
+/// One gym in quick runs, every gym otherwise.
+fn quick_gym(quick: bool) -> Vec<String> {
+    if quick {
+        vec!["pick_block_plate".to_string()]
+    } else {
+        Vec::new()
+    }
+}
+
 /// Runs everything; `quick` shrinks every run (frames only for IPC, one gym) to check the
 /// pipeline end to end in under a minute.
 pub fn run(jitter_s: f64, out: &Path, quick: bool) -> anyhow::Result<Value> {
@@ -32,6 +41,7 @@ pub fn run(jitter_s: f64, out: &Path, quick: bool) -> anyhow::Result<Value> {
         ("ipc", Box::new(move || bench::ipc::run(ipc_only))),
         ("robo", Box::new(move || bench::robo::run("pick_block_plate", if quick { 200 } else { 2000 }))),
         ("agent", Box::new(move || crate::agent_cmd::bench_agent(if quick { 1 } else { 3 }))),
+        ("perception", Box::new(move || bench::perception::run(&quick_gym(quick), true))),
         ("jitter", Box::new(move || bench::tick::run("pick_block_plate", jitter_s, true))),
         ("tick", Box::new(move || bench::tick::run("pick_block_plate", (jitter_s / 6.0).max(3.0), false))),
         ("tick_compute", Box::new(move || bench::control::tick_compute(200_000 / n))),

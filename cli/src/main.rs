@@ -192,6 +192,17 @@ enum BenchCmd {
         #[arg(long, default_value_t = 3)]
         episodes: u32,
     },
+    /// Local perception over the pack's graspable objects at 640x480: segmentation IoU against
+    /// MuJoCo's own segmentation, lift rate of the example pick program (judged from the native
+    /// trace), segmentation and grasp times beside a back-projection baseline.
+    Perception {
+        /// Only these gyms (comma-separated); default every gym with graspable objects.
+        #[arg(long, value_delimiter = ',')]
+        gyms: Vec<String>,
+        /// Segmentation and grasp proposals only, no pick attempts.
+        #[arg(long)]
+        no_lift: bool,
+    },
     /// The same as `tick` under an agent's load: a Python program polls get_state (with both
     /// PNG images) and posts joint chunks through `robo` the whole time.
     Jitter {
@@ -200,8 +211,8 @@ enum BenchCmd {
         #[arg(long, default_value = "pick_block_plate")]
         gym: String,
     },
-    /// Every benchmark in turn (ipc, jitter, tick, tick-compute, ik, limiter-fuzz, sim), with a
-    /// progress bar; writes bench-report/ (summary.md, one JSON per benchmark, PNG plots).
+    /// Every benchmark in turn (ipc, robo, agent, perception, jitter, tick, tick-compute, ik,
+    /// limiter-fuzz, sim), with a progress bar; writes bench-report/ (summary.md, one JSON per benchmark, PNG plots).
     All {
         /// Seconds of the jitter run.
         #[arg(long, default_value_t = 60.0)]
@@ -303,6 +314,9 @@ fn main() {
         Cmd::Bench { which: BenchCmd::Jitter { seconds, gym } } => bench::tick::run(&gym, seconds, true).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Robo { samples, gym } } => bench::robo::run(&gym, samples).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Agent { episodes } } => agent_cmd::bench_agent(episodes).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::Perception { gyms, no_lift } } => {
+            bench::perception::run(&gyms, !no_lift).map(|_| 0)
+        }
         Cmd::Bench { which: BenchCmd::All { jitter_seconds, out, quick } } => {
             bench_all::run(jitter_seconds, &out, quick).map(|_| 0)
         }

@@ -1,9 +1,10 @@
 """Tests for robo_perception: offline geometry checks, then live gyms.
 
 Run:  .venv/bin/python -m pytest tests/python/test_perception.py -s
-Live tests start `r2g up <gym> --instance <unique> --mode lockstep` for each gym (all at once,
-stopped with SIGTERM at the end). The scene files are read here only to know where the objects
-really are; the library never sees them. Binaries: $R2G_BIN (default target/release/r2g of this checkout),
+Live tests start `r2g up <gym> --instance <unique> --mode lockstep --trace-dir D` for each gym
+(all at once, stopped with SIGTERM at the end). Ground truth, which the library never sees: the
+scene files (where objects are), MuJoCo's own segmentation of the compiled model
+(render_truth.py) and the sim-host's native trace (whether an object really rose). Binaries: $R2G_BIN (default target/release/r2g of this checkout),
 gyms: $R2G_GYMS (default gyms/ of this checkout).
 """
 
@@ -12,12 +13,9 @@ from __future__ import annotations
 import math
 import os
 import re
-import signal
 import subprocess
 import sys
-import threading
 import time
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -26,15 +24,16 @@ import pytest
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 SHIM = ROOT / "agent" / "py" / "lib"
-EXAMPLE = ROOT / "robot-skill" / "examples" / "pick_red_block.py"
+EXAMPLE = ROOT / "robot-skill" / "examples" / "pick_object.py"
 sys.path.insert(0, str(SHIM))
 import robo_perception as rp  # noqa: E402
+import render_truth as rt  # noqa: E402
 
 R2G = Path(os.environ.get("R2G_BIN", str(ROOT / "target" / "release" / "r2g")))
 GYMS_DIR = Path(os.environ.get("R2G_GYMS", str(ROOT / "gyms")))
 GYMS = ["pick_block_plate", "stack_bowls", "shelf_plate", "push_to_line", "hang_mug", "microwave_cup"]
 NOUNS = {"box": "block", "cylinder": "cup", "bowl": "bowl", "plate": "plate"}
-RESULTS: dict = {"centroid_err": {}, "timing_ms": {}}
+RESULTS: dict = {"centroid_err": {}, "timing_ms": {}, "iou": {}}
 
 
 # ------------------------------------------------------------------------------------------
@@ -163,45 +162,6 @@ def test_normals_on_plane_face_the_viewpoint():
 # Live gyms
 # ------------------------------------------------------------------------------------------
 
-class Gym:
-    """One `r2g up` process; stopped with SIGTERM to its own pid."""
-
-    def __init__(self, gym: str):
-        self.gym = gym
-        self.instance = f"perc{os.getpid()}_{gym}"
-        self.scene = tomllib.loads((GYMS_DIR / gym / "scene.toml").read_text())
-        self.proc = subprocess.Popen([str(R2G), "up", gym, "--instance", self.instance, "--mode", "lockstep"],
-                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        self.ready = threading.Event()
-        threading.Thread(target=self._watch, daemon=True).start()
-
-    def _watch(self):
-        for line in self.proc.stdout:
-            if line.startswith("READY"):
-                self.ready.set()
-
-    def stop(self):
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-
-    def use(self):
-        os.environ["R2G_INSTANCE"] = self.instance
-
-    def observe(self, cameras=("agentview", "wrist")) -> dict:
-        """A raw observation with copied arrays (so the instance can change afterwards)."""
-        import robo
-        self.use()
-        s = dict(robo.get_state(list(cameras), raw=True))
-        s["image"] = {k: np.array(v) for k, v in s["image"].items()}
-        s["depth"] = {k: np.array(v) for k, v in s["depth"].items()}
-        return s
-
-
 def _quat_matrix(q):
     w, x, y, z = q
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -232,10 +192,11 @@ def object_truth(scene: dict, obj: dict) -> dict:
 
 
 @pytest.fixture(scope="session")
-def gyms():
+def gyms(tmp_path_factory):
     if not R2G.exists():
         pytest.skip(f"{R2G} not built")
-    started = {g: Gym(g) for g in GYMS}
+    traces = tmp_path_factory.mktemp("traces")
+    started = {g: rt.LiveGym(R2G, GYMS_DIR, g, trace_dir=traces / g, tag="perc") for g in GYMS}
     try:
         deadline = time.time() + 90
         for g in started.values():
@@ -249,6 +210,9 @@ def gyms():
             print("\n== centroid errors (m): |center - AABB centre| (xy error vs scene position_m)")
             for k, v in RESULTS["centroid_err"].items():
                 print(f"   {k:32s} {v[0]:.4f}  (xy {v[1]:.4f})")
+        if RESULTS["iou"]:
+            print("== mask IoU against MuJoCo's segmentation: " + ", ".join(f"{k} {v:.3f}" for k, v in RESULTS["iou"].items()))
+            print(f"   mean {np.mean(list(RESULTS['iou'].values())):.3f}")
         for k, v in RESULTS["timing_ms"].items():
             print(f"== segmentation {k}: median {np.median(v):.0f} ms, max {np.max(v):.0f} ms over {len(v)} runs")
 
@@ -421,7 +385,59 @@ def test_example_pick_lifts_block(gyms):
     assert rise > 0.05
     assert np.linalg.norm(after.center[:2] - before.center[:2]) < 0.02
     assert obs["gripper"][0] < 0.9  # the fingers are blocked by the block
-    robo.reset()
+    true_rise = rt.object_rise(g.end_episode(), "block")
+    print(f"   native trace: the block rose {true_rise:.3f} m")
+    assert true_rise > 0.05
+
+
+@pytest.mark.parametrize("gym,prompt,name", [
+    ("push_to_line", "green block", "block"),
+    ("stack_bowls", "orange bowl", "small_bowl"),
+    ("microwave_cup", "white cup", "cup"),
+    ("hang_mug", "blue mug", "mug"),
+    ("shelf_plate", "white plate", "plate"),
+])
+def test_example_pick_lifts_other_objects(gyms, gym, prompt, name):
+    """The same program, named by a different prompt, on other shapes (a rim pinch for the bowl,
+    the cup and the mug, an edge pinch for the standing plate); the native trace judges."""
+    g = gyms[gym]
+    g.end_episode()
+    t = time.perf_counter()
+    out = subprocess.run([sys.executable, str(EXAMPLE), prompt], env=dict(os.environ, R2G_INSTANCE=g.instance),
+                         capture_output=True, text=True, timeout=180)
+    rise = rt.object_rise(g.end_episode(), name)
+    print(f"\n   {gym}: {prompt!r} ({time.perf_counter() - t:.1f} s): native rise {rise:.3f} m; "
+          f"{out.stdout.strip().splitlines()[-1:] if out.stdout.strip() else out.stderr[-300:]}")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert rise > 0.05
+
+
+@pytest.mark.parametrize("gym", GYMS)
+def test_masks_match_the_renderers_segmentation(gyms, gym):
+    """IoU of each object's mask (the cluster nearest its true centre) with MuJoCo's own
+    segmentation of the same model and state, per camera that sees the object."""
+    g = gyms[gym]
+    g.end_episode()
+    obs = g.observe()
+    seg = rp.segment_scene(obs)
+    truth = rt.TruthRenderer(rt.compiled_mjcf(R2G.parent / "r2g-sim", g.scene_path))
+    try:
+        truth.set_state(obs["joint"], rp.gripper_to_width(obs["gripper"][0]) / 2,
+                        fixtures=rt.initial_fixtures(g.scene))
+        # the renderer draws the same picture: the ground truth is aligned pixel for pixel
+        for cam in ("agentview", "wrist"):
+            assert np.abs(truth.rgb(cam).astype(int) - obs["image"][cam]).mean() < 1.0, cam
+        for t in truths(gyms, gym):
+            obj = min(seg.objects, key=lambda o: np.linalg.norm(o.center - t["center"]))
+            for cam in ("agentview", "wrist"):
+                want = truth.masks(cam)[t["name"]]
+                if want.sum() < 50:
+                    continue
+                score = rt.iou(obj.masks[cam], want)
+                RESULTS["iou"][f"{gym}/{t['name']}/{cam}"] = score
+                assert score > 0.85, f"{t['name']} in {cam}: IoU {score:.3f}"
+    finally:
+        truth.close()
 
 
 def test_module_runs_in_sandbox(gyms, tmp_path):

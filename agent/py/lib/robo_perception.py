@@ -1025,7 +1025,8 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
                   color_split: Optional[float] = 0.06, plane_threshold: float = 0.006,
                   min_height: float = 0.005, max_object_height: float = 0.35,
                   min_points: int = 40, max_depth: float = 2.5, ignore_hand: bool = True,
-                  hand: HandGeometry = FRANKA_HAND, plane: Optional[Plane] = None) -> SceneSegmentation:
+                  hand: HandGeometry = FRANKA_HAND, plane: Optional[Plane] = None,
+                  grow_masks: bool = True) -> SceneSegmentation:
     """Segment the objects standing on the support plane.
 
     ``observations``: a raw ``get_state(..., raw=True)`` dict, a list of them, or CameraViews.
@@ -1038,7 +1039,10 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
     chromaticities (r, g shares, so shading does not matter) form several dense modes at least
     ``color_split`` apart is split by colour and re-clustered per colour (None: no split) ->
     clusters with fewer than ``min_points`` points, or reaching above ``max_object_height``
-    (the arm), are dropped -> per cluster: masks, boxes, colour and shape names.
+    (the arm), are dropped -> per cluster: masks, boxes, colour and shape names -> with
+    ``grow_masks``, each image mask grows over the adjacent pixels of the object's colour that
+    the height cut gave to the plane (a bowl's inner floor, the bottom millimetres of a side);
+    the cluster's 3D points stay those above the cut.
     """
     t0 = time.perf_counter()
     views = views_from_state(observations, cameras)
@@ -1113,11 +1117,63 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
     objects.sort(key=lambda o: -len(o.points))
     for k, o in enumerate(objects):
         o.id = k
+    if grow_masks and objects:
+        _grow_masks(objects, views, h, pidx, pcam, plane_threshold, min_height, color_split or 0.06)
     t4 = time.perf_counter()
     timings = {"backproject": 1e3 * (t1 - t0), "plane": 1e3 * (t2 - t1), "filter": 1e3 * (t3 - t2),
                "cluster": 1e3 * (t4 - t3), "total": 1e3 * (t4 - t0)}
     return SceneSegmentation(plane=plane, objects=objects, views=views, timings_ms=timings,
                              plane_masks=plane_masks)
+
+
+def _grow_masks(objects: list, views: list, h: np.ndarray, pidx: np.ndarray, pcam: np.ndarray,
+                plane_threshold: float, min_height: float, color_tol: float, max_iter: int = 96) -> None:
+    """Grows each object's image masks (4-connected) into pixels just above the plane (cut by
+    ``min_height``) whose chromaticity matches the object's, never into another object's mask."""
+    for ci, v in enumerate(views):
+        H, W = v.shape
+        hmap = np.full(H * W, np.nan, dtype=np.float32)
+        sel = pcam == ci
+        hmap[pidx[sel]] = h[sel]
+        with np.errstate(invalid="ignore"):
+            low = ((hmap > -plane_threshold) & (hmap <= min_height)).reshape(H, W)
+        if not low.any():
+            continue
+        chroma = _chromaticity(np.asarray(v.rgb).reshape(-1, 3)).reshape(H, W, 2)
+        taken = np.zeros((H, W), dtype=bool)
+        for o in objects:
+            taken |= o.masks.get(v.name, taken)
+        for o in objects:
+            m = o.masks.get(v.name)
+            if m is None or not m.any():
+                continue
+            ys, xs = np.nonzero(m)
+            pad = 6
+            y0, y1 = max(0, ys.min() - pad), min(H, ys.max() + pad + 1)
+            x0, x1 = max(0, xs.min() - pad), min(W, xs.max() + pad + 1)
+            ref = np.median(chroma[ys, xs], axis=0)
+            c = chroma[y0:y1, x0:x1]
+            cand = (low[y0:y1, x0:x1] & ~taken[y0:y1, x0:x1]
+                    & (np.abs(c - ref).max(axis=2) < color_tol))
+            if not cand.any():
+                continue
+            g = m[y0:y1, x0:x1].copy()
+            for _ in range(max_iter):
+                d = g.copy()
+                d[1:] |= g[:-1]
+                d[:-1] |= g[1:]
+                d[:, 1:] |= g[:, :-1]
+                d[:, :-1] |= g[:, 1:]
+                d = g | (d & cand)
+                if d.sum() == g.sum():
+                    break
+                g = d
+            added = g & ~m[y0:y1, x0:x1]
+            if added.any():
+                grown = m.copy()
+                grown[y0:y1, x0:x1] |= added
+                o.masks[v.name] = grown
+                taken[y0:y1, x0:x1] |= added
 
 
 def _make_cluster(k: int, P: np.ndarray, C: np.ndarray, h: np.ndarray, gsel: np.ndarray, pidx: np.ndarray,

@@ -1,13 +1,15 @@
-"""Worked example stage program: pick up the red block (gym `pick_block_plate`) and lift it 10 cm.
+"""Worked example stage program: pick up an object named by a text prompt and lift it 10 cm.
+The prompt is the first argument (default "red block", for gym `pick_block_plate`), e.g.
+`... pick_object.py "orange bowl"` in `stack_bowls`.
 
 Uses only `robo` and `robo_perception` (numpy + stdlib). Every motion is an ee_pose chunk of
 small steps (at most 4 cm and 0.3 rad apart, under the runtime's 5 cm / 0.35 rad caps), the
 first step measured from the *measured* TCP pose. Prints one line per stage and ends with
-``RESULT lifted=<bool> rise=<m>``; the exit status is 0 only when the block was seen to rise.
+``RESULT lifted=<bool> rise=<m>``; the exit status is 0 only when the object was seen to rise.
 
 Run against a live gym (lockstep is repeatable):
     r2g up pick_block_plate --instance demo --mode lockstep &
-    R2G_INSTANCE=demo .venv/bin/python robot-skill/examples/pick_red_block.py
+    R2G_INSTANCE=demo .venv/bin/python robot-skill/examples/pick_object.py
 """
 
 import os
@@ -21,7 +23,7 @@ from robo import get_state, post_actions  # noqa: E402
 
 import robo_perception as rp  # noqa: E402
 
-PROMPT = "red block"
+PROMPT = sys.argv[1] if len(sys.argv) > 1 else "red block"
 STEP_M, STEP_RAD = 0.04, 0.30          # below max_tcp_step_m / max_tcp_step_rad
 LIFT_M = 0.10
 
@@ -43,26 +45,26 @@ def path_to(goal, max_m=STEP_M):
     return rp.interpolate_poses(here, goal, max_step_m=max_m, max_step_rad=STEP_RAD)
 
 
-def find_block(state, near=None):
+def find_target(state, near=None):
     scene = rp.segment_scene(state)
-    block = rp.select(scene, PROMPT)
+    target = rp.select(scene, PROMPT)
     if near is not None:
         reds = [o for o, _ in rp.rank_objects(scene, PROMPT)]
         if reds:
-            block = min(reds, key=lambda o: float(np.linalg.norm(o.center - near)))
-    return scene, block
+            target = min(reds, key=lambda o: float(np.linalg.norm(o.center - near)))
+    return scene, target
 
 
 def main():
     state = get_state(["agentview", "wrist"], raw=True)
-    scene, block = find_block(state)
+    scene, target = find_target(state)
     print(f"segmentation: {scene.timings_ms['total']:.0f} ms, plane z0={scene.plane.height_at_origin:.4f}")
     print("\n".join("  " + o.describe() for o in scene.objects))
-    if block is None:
+    if target is None:
         print(f"no object matches {PROMPT!r}")
         sys.exit(1)
-    start_center = block.center.copy()
-    grasps = rp.propose_grasps(block, scene, reference_pose=state["ee_pose"])
+    start_center = target.center.copy()
+    grasps = rp.propose_grasps(target, scene, reference_pose=state["ee_pose"])
     if not grasps:
         print("no feasible grasp")
         sys.exit(1)
@@ -72,11 +74,11 @@ def main():
     # 1. to the pre-grasp, gripper open
     move(path_to(g.pregrasp), -1.0, "to pre-grasp")
 
-    # 2. look again from close by and refine the grasp if the block is still there
+    # 2. look again from close by and refine the grasp if the object is still there
     state = get_state(["agentview", "wrist"], raw=True)
-    scene2, block2 = find_block(state, near=start_center)
-    if block2 is not None and np.linalg.norm(block2.center - start_center) < 0.03:
-        better = rp.propose_grasps(block2, scene2, reference_pose=state["ee_pose"])
+    scene2, target2 = find_target(state, near=start_center)
+    if target2 is not None and np.linalg.norm(target2.center - start_center) < 0.03:
+        better = rp.propose_grasps(target2, scene2, reference_pose=state["ee_pose"])
         # same kind of grasp, same place, same closing axis: only a correction, not a new plan
         better = [b for b in better if b.kind == g.kind and np.linalg.norm(b.position - g.position) < 0.02
                   and abs(float(np.dot(b.closing, g.closing))) > 0.95]
@@ -93,14 +95,14 @@ def main():
     goal[2] += LIFT_M
     move(path_to(goal, max_m=0.01), 1.0, "lift")
 
-    # 4. verify: the gripper is blocked by something and the red cluster rose
+    # 4. verify: the gripper is blocked by something and the object's cluster rose
     state = get_state(["agentview", "wrist"], raw=True)
     grip = state["gripper"][0]
-    _, block3 = find_block(state, near=start_center + np.array([0.0, 0.0, LIFT_M]))
-    rise = float(block3.center[2] - start_center[2]) if block3 is not None else float("nan")
-    lifted = bool(block3 is not None and rise > 0.05 and grip < 0.95)
-    print(f"gripper {grip:.2f} (1 = closed on nothing); block centre z {start_center[2]:.3f} -> "
-          f"{block3.center[2] if block3 is not None else float('nan'):.3f}")
+    _, target3 = find_target(state, near=start_center + np.array([0.0, 0.0, LIFT_M]))
+    rise = float(target3.center[2] - start_center[2]) if target3 is not None else float("nan")
+    lifted = bool(target3 is not None and rise > 0.05 and grip < 0.95)
+    print(f"gripper {grip:.2f} (1 = closed on nothing); object centre z {start_center[2]:.3f} -> "
+          f"{target3.center[2] if target3 is not None else float('nan'):.3f}")
     print(f"RESULT lifted={lifted} rise={rise:.3f}")
     sys.exit(0 if lifted else 1)
 

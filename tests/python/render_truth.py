@@ -1,0 +1,206 @@
+"""Ground truth for perception tests and the perception benchmark (never used by `robo`).
+
+`LiveGym` runs one `r2g up <gym> --mode lockstep` (optionally with the native trace, whose
+recorded object poses say whether something was really lifted).
+
+Renders MuJoCo's own segmentation of a gym with the pinned `mujoco` Python wheel, from the very
+MJCF the sim-host compiles (`r2g-sim <scene> --dump-mjcf F --exit-after-dump`), posed from the
+measured joint positions and, when given, object poses from the sim-host's native trace. Each
+pixel is labelled with the name of the scene element owning the geom drawn there: an object or
+fixture name, `robot`, or `world` (table, floor).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import tempfile
+import threading
+import time
+import tomllib
+from pathlib import Path
+from typing import Mapping, Optional, Sequence
+
+import numpy as np
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+import mujoco  # noqa: E402
+
+
+class LiveGym:
+    """One `r2g up` process, stopped with SIGTERM to its own pid."""
+
+    def __init__(self, r2g: Path, gyms_dir: Path, gym: str, trace_dir: Optional[Path] = None, tag: str = "g"):
+        self.gym = gym
+        self.instance = f"{tag}{os.getpid()}_{gym}"
+        self.scene_path = gyms_dir / gym / "scene.toml"
+        self.scene = tomllib.loads(self.scene_path.read_text())
+        self.trace_dir = trace_dir
+        cmd = [str(r2g), "up", gym, "--instance", self.instance, "--mode", "lockstep"]
+        if trace_dir is not None:
+            cmd += ["--trace-dir", str(trace_dir)]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        self.ready = threading.Event()
+        threading.Thread(target=self._watch, daemon=True).start()
+
+    def _watch(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            if line.startswith("READY"):
+                self.ready.set()
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+    def use(self) -> None:
+        os.environ["R2G_INSTANCE"] = self.instance
+
+    def observe(self, cameras: Sequence[str] = ("agentview", "wrist")) -> dict:
+        """A raw observation with copied arrays (so the instance can change afterwards)."""
+        import robo
+        self.use()
+        s = dict(robo.get_state(list(cameras), raw=True))
+        s["image"] = {k: np.array(v) for k, v in s["image"].items()}
+        s["depth"] = {k: np.array(v) for k, v in s["depth"].items()}
+        return s
+
+    def traces(self) -> list[Path]:
+        assert self.trace_dir is not None
+        return sorted(self.trace_dir.glob("episode-*.trace.json"), key=lambda p: int(p.name.split("-")[1].split(".")[0]))
+
+    def end_episode(self, timeout: float = 20.0) -> dict:
+        """Resets the scene (which ends the episode) and returns its native trace."""
+        import robo
+        before = len(self.traces())
+        self.use()
+        robo.reset()
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            t = self.traces()
+            if len(t) > before:
+                for _ in range(50):
+                    try:
+                        return json.loads(t[-1].read_text())
+                    except json.JSONDecodeError:  # still being written
+                        time.sleep(0.1)
+            time.sleep(0.1)
+        raise TimeoutError(f"{self.gym}: no new trace in {self.trace_dir} within {timeout} s")
+
+
+def object_rise(trace: dict, name: str) -> float:
+    """How far the object's centre ended above where it started (m), from the native trace."""
+    i = trace["objects"].index(name)
+    samples = trace["samples"]
+    return float(samples[-1]["objects"][i][2] - samples[0]["objects"][i][2])
+
+
+def compiled_mjcf(r2g_sim: Path, scene: Path) -> str:
+    """The MJCF the sim-host runs for `scene`."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "model.xml"
+        r = subprocess.run([str(r2g_sim), str(scene), "--instance", f"truth{os.getpid()}", "--render-hz", "0",
+                            "--dump-mjcf", str(out), "--exit-after-dump"], capture_output=True, text=True, timeout=60)
+        if r.returncode != 0:
+            raise RuntimeError(f"r2g-sim could not compile {scene}: {r.stderr.strip()}")
+        return out.read_text()
+
+
+class TruthRenderer:
+    """Segmentation (and RGB, to check alignment) of one gym's model at a given state."""
+
+    def __init__(self, xml: str, width: int = 640, height: int = 480):
+        self.model = mujoco.MjModel.from_xml_string(xml)
+        self.data = mujoco.MjData(self.model)
+        self.width, self.height = width, height
+        self.renderer = mujoco.Renderer(self.model, height, width)
+        m = self.model
+        self.objects = {}  # root body id -> scene element name
+        owner = np.zeros(m.ngeom, dtype=np.int64)
+        names = []
+        for g in range(m.ngeom):
+            b = int(m.geom_bodyid[g])
+            while b != 0 and m.body_parentid[b] != 0:
+                b = int(m.body_parentid[b])
+            name = "world" if b == 0 else m.body(b).name
+            if name == "link0":
+                name = "robot"
+            if name not in names:
+                names.append(name)
+            owner[g] = names.index(name)
+        self.names = names
+        self.owner = owner
+        mujoco.mj_forward(m, self.data)
+
+    def close(self) -> None:
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
+
+    def set_state(self, joints: Sequence[float], finger_m: Optional[float] = None,
+                  objects: Optional[Mapping[str, Sequence[float]]] = None,
+                  fixtures: Optional[Mapping[str, float]] = None) -> None:
+        """Arm joints (7, rad), one finger's opening (m), object poses (name -> world position +
+        quaternion w, x, y, z, as the trace records them) and fixture joints (name -> rad or m);
+        the rest stays as compiled."""
+        m, d = self.model, self.data
+        mujoco.mj_resetData(m, d)
+        for i, q in enumerate(joints):
+            d.qpos[m.jnt_qposadr[m.joint(f"joint{i + 1}").id]] = q
+        if finger_m is not None:
+            for j in ("finger_joint1", "finger_joint2"):
+                d.qpos[m.jnt_qposadr[m.joint(j).id]] = finger_m
+        for name, pose in (objects or {}).items():
+            body = m.body(name)
+            jnt = int(m.body_jntadr[body.id])
+            if jnt < 0 or m.jnt_type[jnt] != mujoco.mjtJoint.mjJNT_FREE:
+                raise ValueError(f"{name} has no free joint")
+            a = m.jnt_qposadr[jnt]
+            d.qpos[a:a + 7] = pose
+        for name, value in (fixtures or {}).items():
+            d.qpos[m.jnt_qposadr[m.joint(f"{name}__joint").id]] = value
+        mujoco.mj_forward(m, d)
+
+    def segmentation(self, camera: str) -> np.ndarray:
+        """(H, W) int array of indices into `self.names`; -1 where nothing is drawn."""
+        self.renderer.enable_segmentation_rendering()
+        self.renderer.update_scene(self.data, camera=camera)
+        seg = self.renderer.render()
+        self.renderer.disable_segmentation_rendering()
+        ids, types = seg[..., 0], seg[..., 1]
+        out = np.full(ids.shape, -1, dtype=np.int64)
+        geom = (types == int(mujoco.mjtObj.mjOBJ_GEOM)) & (ids >= 0)
+        out[geom] = self.owner[ids[geom]]
+        return out
+
+    def masks(self, camera: str) -> dict[str, np.ndarray]:
+        seg = self.segmentation(camera)
+        return {n: seg == i for i, n in enumerate(self.names)}
+
+    def rgb(self, camera: str) -> np.ndarray:
+        self.renderer.update_scene(self.data, camera=camera)
+        return self.renderer.render()
+
+
+def initial_fixtures(scene: Mapping) -> dict[str, float]:
+    """Each jointed fixture's starting value from a parsed scene.toml, in MuJoCo units."""
+    out = {}
+    for fx in scene.get("fixtures", []):
+        j = fx.get("joint")
+        if j:
+            v = float(j.get("initial", 0.0))
+            out[fx["name"]] = np.radians(v) if j.get("kind", "hinge") == "hinge" else v
+    return out
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0
