@@ -15,7 +15,7 @@ Run against a live gym (lockstep is repeatable):
 import os
 import sys
 
-# In the sandbox robo_perception is importable as is; elsewhere it lives in agent/py/lib.
+# robo_perception imports as is in the sandbox and in the project's .venv; this line serves other interpreters.
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "agent", "py", "lib"))
 
 import numpy as np  # noqa: E402
