@@ -294,10 +294,16 @@ impl Client {
             }
             if let Some(f) = &cam.last {
                 let h = f.header();
-                let fresh = h.reset_id > not_before_reset
-                    || (h.reset_id == not_before_reset && h.sim_time_s >= not_before_s - 1e-9);
-                if fresh || t0.elapsed() >= wait {
+                // Reset ids grow by one per reset; compared modulo 2^32.
+                let episodes_ahead = h.reset_id.wrapping_sub(not_before_reset) as i32;
+                let fresh = episodes_ahead > 0 || (episodes_ahead == 0 && h.sim_time_s >= not_before_s - 1e-9);
+                if fresh || (episodes_ahead == 0 && t0.elapsed() >= wait) {
                     return Ok(f.clone());
+                }
+                if t0.elapsed() >= wait {
+                    // Only a frame of an earlier episode: showing it would show a scene that no
+                    // longer exists.
+                    return Err(RoboError::NoFrame(name.into(), wait.as_secs_f64()));
                 }
             } else if t0.elapsed() >= wait {
                 return Err(RoboError::NoFrame(name.into(), wait.as_secs_f64()));

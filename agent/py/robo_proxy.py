@@ -22,7 +22,8 @@ import sys
 import robo
 
 ALLOWED = {"reset", "get_state", "post_actions", "instance", "perception"}
-FRAMES_KEPT = 4  # raw frames remembered per camera for perception requests
+FRAMES_KEPT = 4  # raw frames remembered per camera for perception requests...
+FRAMES_BYTES = 64 << 20  # ...within this many bytes in all
 _services = None
 
 
@@ -59,6 +60,9 @@ class Session:
                 ts = (s.get("image_timestamp") or {}).get(cam)
                 kept.append((ts, img, depth[cam], s["camera_intrinsics"][cam]))
                 del kept[:-FRAMES_KEPT]
+        # the newest frames win the byte budget
+        while sum(f[1].nbytes + f[2].nbytes for k in self.frames.values() for f in k) > FRAMES_BYTES:
+            max(self.frames.values(), key=len).pop(0)
 
     def camera_frame(self, camera: str, ts: float, shape: tuple) -> dict:
         """The raw frame of `camera` taken at `ts` with (H, W) = `shape`: one this program was
@@ -113,6 +117,7 @@ class Session:
             return self.refuse("this turn is observation-only: reset() and post_actions() are not allowed yet")
         if fn == "reset":
             self.override = None
+            self.frames.clear()  # simulated time starts again: old timestamps would match anew
             return robo.reset()
         cmd = args[0] if args else None
         n = len(cmd.get("actions", [])) if isinstance(cmd, dict) and isinstance(cmd.get("actions"), list) else 0
@@ -167,6 +172,7 @@ def main() -> int:
                     print(json.dumps(observe(bool(cmd.get("images", True)))), flush=True)
                 elif cmd.get("cmd") == "reset":
                     sess.override = None
+                    sess.frames.clear()
                     print(json.dumps({"ok": robo.reset(), "feedback": robo.get_state([])["control_feedback"]}), flush=True)
                 continue
             chunk = shim.recv(1 << 20)

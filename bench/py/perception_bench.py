@@ -79,6 +79,12 @@ def bench_gym(gym: str, items: list, lift: bool, trace_root: Path) -> list[dict]
             row = {"gym": gym, "object": name, "prompt": prompt, "found": obj is not None,
                    "backproject_ms": bp_ms, "segment_ms": seg1_ms, "segment_fused_ms": segf_ms, "iou": {}}
             for cam in ("agentview", "wrist"):
+                # the ground truth must draw the very picture the camera delivered
+                mad = float(np.abs(truth.rgb(cam).astype(int) - obs["image"][cam]).mean())
+                if mad > 1.0:
+                    raise RuntimeError(f"{gym}/{cam}: the ground-truth render differs from the camera image "
+                                       f"(mean abs difference {mad:.2f}); IoU would be meaningless")
+                row.setdefault("truth_rgb_mad", {})[cam] = mad
                 t = truth.masks(cam)[name]
                 if t.sum() >= MIN_TRUTH_PX:
                     row["iou"][cam] = rt.iou(obj.masks[cam], t) if obj is not None else 0.0
@@ -103,6 +109,11 @@ def bench_gym(gym: str, items: list, lift: bool, trace_root: Path) -> list[dict]
             truth.close()
         g.stop()
     return rows
+
+
+def _median_or_none(values: list) -> float | None:
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.median(finite)) if finite else None
 
 
 def main() -> int:
@@ -145,7 +156,7 @@ def main() -> int:
         "not_lifted": [f"{r['gym']}/{r['object']}" for r in rows if "lifted" in r and not r["lifted"]],
         "segment_ms": float(np.median(seg)),
         "segment_fused_ms": float(np.median([r["segment_fused_ms"] for r in rows])),
-        "grasp_ms": float(np.nanmedian([r["grasp_ms"] for r in rows])),
+        "grasp_ms": _median_or_none([r["grasp_ms"] for r in rows]),
         "backproject_ms": float(np.median(bp)),
         "segment_over_backproject": float(np.median(seg) / max(np.median(bp), 1e-9)),
         "resolution": [640, 480],

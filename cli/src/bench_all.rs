@@ -41,7 +41,7 @@ pub fn run(jitter_s: f64, out: &Path, quick: bool) -> anyhow::Result<Value> {
         ("ipc", Box::new(move || bench::ipc::run(ipc_only))),
         ("robo", Box::new(move || bench::robo::run("pick_block_plate", if quick { 200 } else { 2000 }))),
         ("agent", Box::new(move || crate::agent_cmd::bench_agent(if quick { 1 } else { 3 }))),
-        ("perception", Box::new(move || bench::perception::run(&quick_gym(quick), true))),
+        ("perception", Box::new(move || bench::perception::run(&quick_gym(quick), !quick))),
         ("jitter", Box::new(move || bench::tick::run("pick_block_plate", jitter_s, true))),
         ("tick", Box::new(move || bench::tick::run("pick_block_plate", (jitter_s / 6.0).max(3.0), false))),
         ("tick_compute", Box::new(move || bench::control::tick_compute(200_000 / n))),

@@ -404,6 +404,60 @@ def test_timeout_is_reported_promptly(serve, configure):
     assert 0.45 < took < 1.2, took
 
 
+def test_grasp_service_500_and_timeout(serve, configure):
+    state, mask = fake_state(), np.zeros((48, 64), dtype=bool)
+    mask[10:20, 20:30] = True
+    bad = serve(lambda path, body: (500, b"model crashed"))
+    configure("http", "http://127.0.0.1:9/segment", bad.url("/grasp"))
+    with pytest.raises(rs.PerceptionServiceError) as e:
+        rs.grasps_http(state, "agentview", mask)
+    assert str(e.value) == f"grasp service {bad.url('/grasp')} answered HTTP 500: model crashed"
+
+    def slow(path: str, body: bytes) -> tuple[int, Any]:
+        stalled.stop.wait(5.0)
+        return 200, {"grasps": []}
+    stalled = serve(slow)
+    configure("http", "http://127.0.0.1:9/segment", stalled.url("/grasp"), grasp_timeout=0.5)
+    t = time.monotonic()
+    with pytest.raises(rs.PerceptionServiceError, match=r"did not answer within 0\.5 s$"):
+        rs.grasps_http(state, "agentview", mask)
+    assert time.monotonic() - t < 1.2
+
+
+def test_a_trickling_answer_is_cut_at_the_timeout(configure):
+    """Headers at once, then a byte every 50 ms: every socket read succeeds, only the deadline
+    for the whole request can stop it."""
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+    stop = threading.Event()
+
+    def trickle() -> None:
+        try:
+            conn, _ = srv.accept()
+        except OSError:
+            return
+        with conn:
+            conn.recv(1 << 16)
+            conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n")
+            give_up = time.monotonic() + 3.0  # a client without a deadline fails, it does not hang
+            while not stop.wait(0.05) and time.monotonic() < give_up:
+                try:
+                    conn.sendall(b" ")
+                except OSError:
+                    return
+    threading.Thread(target=trickle, daemon=True).start()
+    try:
+        configure("http", f"http://127.0.0.1:{srv.getsockname()[1]}/segment", seg_timeout=0.5)
+        t = time.monotonic()
+        with pytest.raises(rs.PerceptionServiceError, match=r"did not answer within 0\.5 s$"):
+            rs.segment_http(fake_state(), "agentview", text="red block")
+        assert time.monotonic() - t < 1.2
+    finally:
+        stop.set()
+        srv.close()
+
+
 def test_connection_refused(configure):
     url = f"http://127.0.0.1:{closed_port()}/segment"
     configure("http", url)
@@ -696,7 +750,8 @@ import json
 import robo_services as rs
 from robo import get_state
 state = get_state(["agentview"], raw=True)
-out = {"backend": rs.backend()}
+import os
+out = {"backend": rs.backend(), "program_sees_config": "R2G_PERCEPTION_CONFIG" in os.environ}
 block = rs.find(state, "red block")
 out["centroid"] = block.centroid.tolist()
 out["grasps"] = [g.pose for g in rs.grasps_for(state, block)]
@@ -714,6 +769,7 @@ print(json.dumps(out))
     assert res["exit"] == "ok" and res["violation"] is None, res
     got = json.loads(res["stdout"].strip().splitlines()[-1])
     assert got["backend"] == "http", "the proxy did not get R2G_PERCEPTION_CONFIG"
+    assert got["program_sees_config"] is False
     assert np.linalg.norm(np.array(got["centroid"]) - BLOCK) < 0.02
     assert len(got["grasps"]) == 1 and np.linalg.norm(np.array(got["grasps"][0][:2]) - BLOCK[:2]) < 0.02
     assert got["error"].startswith(f"segment service {seg.url('/segment')} answered HTTP 500")

@@ -61,6 +61,7 @@ CONFIG_ENV = "R2G_PERCEPTION_CONFIG"
 MAX_RESPONSE_BYTES = 64 << 20
 """Largest answer body read from a service; a longer one is an error."""
 MAX_MASKS = 256
+MAX_MASK_PIXELS = 1 << 26  # all masks of one answer together, decoded (64 MiB of bool)
 """Most masks one segmentation answer may hold (each decodes to a full-size boolean image)."""
 PREGRASP_OFFSET = 0.10
 """Pre-grasp distance behind a remote grasp, along its approach (m)."""
@@ -290,7 +291,14 @@ def _post_json(what: str, url: str, timeout: float, body: dict) -> dict:
                                              f"{MAX_RESPONSE_BYTES >> 20} MiB allowed")
             buf = bytearray()
             while True:
-                chunk = resp.read(min(1 << 20, MAX_RESPONSE_BYTES + 1 - len(buf)))
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise PerceptionServiceError(late)
+                sock = getattr(getattr(resp.fp, "raw", None), "_sock", None)
+                if sock is not None:
+                    # each read waits at most the time left, so a trickling answer cannot stretch it
+                    sock.settimeout(left)
+                chunk = resp.read1(min(1 << 16, MAX_RESPONSE_BYTES + 1 - len(buf)))
                 if not chunk:
                     break
                 buf += chunk
@@ -366,6 +374,9 @@ def _parse_masks(ans: dict, name: str, shape: tuple[int, int]) -> list[tuple[np.
         raise PerceptionServiceError(f"{name}: 'masks' is not a list")
     if len(items) > MAX_MASKS:
         raise PerceptionServiceError(f"{name}: {len(items)} masks, more than the {MAX_MASKS} allowed")
+    if len(items) * shape[0] * shape[1] > MAX_MASK_PIXELS:
+        raise PerceptionServiceError(f"{name}: {len(items)} masks of {shape[0]}x{shape[1]} are more than the "
+                                     f"{MAX_MASK_PIXELS} mask pixels one answer may hold")
     out = []
     for i, it in enumerate(items):
         if not isinstance(it, dict) or "mask" not in it or "score" not in it:
@@ -516,8 +527,15 @@ def _points(fr: dict, mask: np.ndarray) -> Optional[np.ndarray]:
 
 
 def _to_grasp(T_cam: np.ndarray, score: float, width: float, base_from_camera: np.ndarray, camera: str,
-              source: str) -> rp.Grasp:
+              source: str, reference: Optional[np.ndarray] = None) -> rp.Grasp:
     T = base_from_camera @ T_cam
+    if reference is not None:
+        # a parallel-jaw grasp is the same turned half a turn about its approach: take the one
+        # nearer the hand's present orientation
+        flipped = T.copy()
+        flipped[:3, :2] = -T[:3, :2]
+        if rp.rotation_distance(flipped[:3, :3], reference) < rp.rotation_distance(T[:3, :3], reference):
+            T = flipped
     pre = T.copy()
     pre[:3, 3] -= T[:3, 2] * PREGRASP_OFFSET
     open_w = min(width + OPEN_MARGIN, rp.GRIPPER_MAX_WIDTH)
@@ -650,10 +668,13 @@ def _as_mask(mask: Any, camera: str) -> np.ndarray:
     return np.asarray(mask, dtype=bool)
 
 
-def grasps_http(state: Mapping[str, Any], camera: str, mask: Any) -> list[rp.Grasp]:
+def grasps_http(state: Mapping[str, Any], camera: str, mask: Any,
+                reference_pose: Optional[Sequence[float]] = None) -> list[rp.Grasp]:
     """Grasps on ``mask`` ((H, W) bool of ``camera``, or a target with ``.masks``) from the grasp
     service, as base-frame `robo_perception.Grasp`s (kind "remote"), best first. Needs depth
-    (``get_state(..., raw=True)``). Grasps wider than the gripper stroke are dropped."""
+    (``get_state(..., raw=True)``). Grasps wider than the gripper stroke are dropped. Of the two
+    equivalent yaws of each grasp, the one nearer ``reference_pose`` (default: the state's
+    ``ee_pose``) is returned."""
     fr = _frame(state, camera)
     if fr["depth"] is None:
         raise ValueError(f"grasps need depth for {camera!r}: observe with get_state([{camera!r}], raw=True)")
@@ -674,7 +695,9 @@ def grasps_http(state: Mapping[str, Any], camera: str, mask: Any) -> list[rp.Gra
         cfg = load_config()
         found = request_grasps(cfg.grasp, np.asarray(fr["depth"]), fr["K"], m)
         source = cfg.grasp.url
-    return [_to_grasp(T, s, w, fr["base_from_camera"], camera, source)
+    ref = reference_pose if reference_pose is not None else state.get("ee_pose")
+    R_ref = rp.pose_to_matrix(ref)[:3, :3] if ref is not None else None
+    return [_to_grasp(T, s, w, fr["base_from_camera"], camera, source, R_ref)
             for T, s, w in found if w <= rp.GRIPPER_MAX_WIDTH]
 
 
