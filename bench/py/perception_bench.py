@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -117,6 +118,8 @@ def _median_or_none(values: list) -> float | None:
 
 
 def main() -> int:
+    # stopped (or r2g gone): unwind, so every gym started here is stopped by its finally block
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     ap = argparse.ArgumentParser()
     ap.add_argument("--gyms", default="", help="comma-separated subset of gyms")
     ap.add_argument("--no-lift", action="store_true", help="segmentation and grasp proposals only")

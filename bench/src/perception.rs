@@ -9,8 +9,7 @@ use serde_json::Value;
 
 pub fn run(gyms: &[String], lift: bool) -> anyhow::Result<Value> {
     let (python, script) = crate::tick::python_script("perception_bench.py")?;
-    let mut cmd = std::process::Command::new(python);
-    cmd.arg(script);
+    let mut cmd = crate::tick::python_command(&python, &script);
     if !gyms.is_empty() {
         cmd.arg("--gyms").arg(gyms.join(","));
     }

@@ -26,8 +26,7 @@ pub fn run(gym: &str, samples: usize) -> anyhow::Result<Value> {
         ready_timeout: Duration::from_secs(60),
     };
     let mut inst = Instance::up(&opts)?;
-    let out = std::process::Command::new(python)
-        .arg(script)
+    let out = crate::tick::python_command(&python, &script)
         .arg(samples.to_string())
         .env("R2G_INSTANCE", &inst.name)
         .stderr(std::process::Stdio::inherit())

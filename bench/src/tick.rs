@@ -25,6 +25,22 @@ pub(crate) fn python_script(name: &str) -> anyhow::Result<(std::path::PathBuf, s
     Ok((python, script))
 }
 
+/// A command running `python script`, which gets SIGTERM if this process dies (a stopped
+/// `r2g bench` leaves no script behind; the scripts stop their own instances on SIGTERM).
+pub(crate) fn python_command(python: &std::path::Path, script: &std::path::Path) -> std::process::Command {
+    use std::os::unix::process::CommandExt;
+    let mut cmd = std::process::Command::new(python);
+    cmd.arg(script);
+    // SAFETY: prctl is async-signal-safe and touches no memory of the parent.
+    unsafe {
+        cmd.pre_exec(|| {
+            ipc_schema::process::die_with_parent();
+            Ok(())
+        });
+    }
+    cmd
+}
+
 /// Prints a finished bench script's stdout and parses its last line, the JSON figures.
 pub(crate) fn script_figures(out: &std::process::Output, script: &str) -> anyhow::Result<Value> {
     let text = String::from_utf8_lossy(&out.stdout);
@@ -81,8 +97,7 @@ pub fn run(gym: &str, seconds: f64, client: bool) -> anyhow::Result<Value> {
     // The agent stops by itself when the runtime does.
     let agent = match &load {
         Some((python, script)) => Some(
-            std::process::Command::new(python)
-                .arg(script)
+            python_command(python, script)
                 .arg(format!("{}", seconds + 5.0))
                 .env("R2G_INSTANCE", &inst.name)
                 .stdout(std::process::Stdio::piped())

@@ -281,9 +281,11 @@ enum BenchCmd {
 
 fn main() {
     let cli = Cli::parse();
-    process::install_stop_signals();
     let r = match cli.command {
         Cmd::Up { gym, mode, instance, render_hz, trace_dir, robot_config } => {
+            // Only `up` waits for the stop signals to shut its instance down in order; every other
+            // command ends at once on them, and its instances' processes follow (die_with_parent).
+            process::install_stop_signals();
             let rc = robot_config.unwrap_or_else(launch::default_robot_config);
             up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc)
         }
