@@ -56,7 +56,7 @@ __all__ = [
     "ObjectCluster", "SceneSegmentation", "segment_scene", "select", "rank_objects", "segment",
     "color_name", "shape_name", "parse_prompt",
     # grasps
-    "Grasp", "propose_grasps",
+    "Grasp", "propose_grasps", "grasp_rotation",
 ]
 
 ArrayLike = Union[Sequence[float], np.ndarray]
@@ -1415,9 +1415,12 @@ class Grasp:
         return p
 
 
-def _frame(closing: np.ndarray, approach: np.ndarray, reference: Optional[np.ndarray]) -> np.ndarray:
-    """TCP rotation with y = closing and z = approach; the closing sign is chosen so the
-    rotation is nearest to ``reference``."""
+def grasp_rotation(closing: ArrayLike, approach: ArrayLike, reference: Optional[np.ndarray] = None) -> np.ndarray:
+    """TCP rotation with y = closing and z = approach; of the two signs of the closing axis (the
+    same parallel-jaw grasp turned half a turn), the one nearest ``reference`` (a 3x3 rotation,
+    e.g. of the measured ``ee_pose``), else nearest pointing down at yaw 0."""
+    approach = np.asarray(approach, dtype=float)
+    closing = np.asarray(closing, dtype=float)
     a = approach / np.linalg.norm(approach)
     d = closing - np.dot(closing, a) * a
     d /= np.linalg.norm(d)
@@ -1582,7 +1585,7 @@ def propose_grasps(obj: ObjectCluster, scene: Optional[SceneSegmentation] = None
                 continue
             centre = c + d * (lo + hi) / 2.0   # middle of the pinched run, on the plane
             T = np.eye(4)
-            T[:3, :3] = _frame(d, down, Rref)
+            T[:3, :3] = grasp_rotation(d, down, Rref)
             T[:3, 3] = centre - n * plane.distance(centre) + n * tcp_h
             off = np.linalg.norm((T[:3, 3] - c0) - np.dot(T[:3, 3] - c0, n) * n)
             centred = max(0.0, 1.0 - off / diag)
@@ -1626,7 +1629,7 @@ def propose_grasps(obj: ObjectCluster, scene: Optional[SceneSegmentation] = None
                     continue  # closing nearly vertical: no approach from above
                 a /= np.linalg.norm(a)
                 T = np.eye(4)
-                T[:3, :3] = _frame(d, a, Rref)
+                T[:3, :3] = grasp_rotation(d, a, Rref)
                 mid = 0.5 * (Q[i] + Q[j])
                 T[:3, 3] = mid
                 h_t = plane.distance(mid)

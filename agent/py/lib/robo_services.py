@@ -529,13 +529,8 @@ def _points(fr: dict, mask: np.ndarray) -> Optional[np.ndarray]:
 def _to_grasp(T_cam: np.ndarray, score: float, width: float, base_from_camera: np.ndarray, camera: str,
               source: str, reference: Optional[np.ndarray] = None) -> rp.Grasp:
     T = base_from_camera @ T_cam
-    if reference is not None:
-        # a parallel-jaw grasp is the same turned half a turn about its approach: take the one
-        # nearer the hand's present orientation
-        flipped = T.copy()
-        flipped[:3, :2] = -T[:3, :2]
-        if rp.rotation_distance(flipped[:3, :3], reference) < rp.rotation_distance(T[:3, :3], reference):
-            T = flipped
+    # of the two equivalent yaws, the one the local grasps would take
+    T[:3, :3] = rp.grasp_rotation(T[:3, 1], T[:3, 2], reference)
     pre = T.copy()
     pre[:3, 3] -= T[:3, 2] * PREGRASP_OFFSET
     open_w = min(width + OPEN_MARGIN, rp.GRIPPER_MAX_WIDTH)
