@@ -4,6 +4,23 @@ VENV := .venv
 STAMPS := .stamps
 export MUJOCO_GL := egl
 
+# One compilation of every dependency for the release binaries, the `robo` extension and the
+# test binaries (`make test` builds each workspace crate once per profile, plus the cfg(test)
+# builds of the crates themselves). Two things used to split them:
+# - pyo3's build script reruns, and pyo3 and `robo` compile again, whenever PYO3_PYTHON,
+#   VIRTUAL_ENV, PYO3_ENVIRONMENT_SIGNATURE or PYO3_BUILD_EXTENSION_MODULE differ from the last
+#   build; maturin sets them for its build, so every cargo command here sees the same values;
+# - Cargo resolves features per invocation: `maturin develop` builds `robo` alone and
+#   `cargo test` adds dev-dependencies. robo/Cargo.toml pins the workspace's features
+#   (tests/tests/build.rs checks the graphs agree).
+# The test binaries link no libpython either way: pyo3 finds no shared libpython here and
+# `robo`'s own tests never call into Python.
+export VIRTUAL_ENV := $(CURDIR)/$(VENV)
+export PYO3_PYTHON := $(CURDIR)/$(VENV)/bin/python
+export PYO3_BUILD_EXTENSION_MODULE := 1
+export PYO3_ENVIRONMENT_SIGNATURE = $(shell $(PYO3_PYTHON) -c 'import sys; v = sys.version_info; \
+  print(f"{sys.implementation.name}-{v.major}.{v.minor}-{64 if sys.maxsize > 2**32 else 32}bit")' 2>/dev/null)
+
 .PHONY: demo test deps venv build robo bench-tick clean
 
 demo: robo
@@ -27,8 +44,7 @@ build: venv
 	cargo build --release --workspace --locked
 
 robo: build
-	PYO3_BUILD_EXTENSION_MODULE=1 VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH \
-	  $(VENV)/bin/maturin develop --release --locked -q -m agent-host/Cargo.toml
+	PATH=$(CURDIR)/$(VENV)/bin:$$PATH $(VENV)/bin/maturin develop --release --locked -m robo/Cargo.toml
 
 bench-tick: build
 	target/release/r2g bench tick --seconds 10

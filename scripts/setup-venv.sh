@@ -13,4 +13,4 @@ ln -sfn "$lib" ".venv/mujoco-lib/$(basename "$lib")"
 # The stage-program helpers (robo_perception, robo_services) import anywhere in the venv, as
 # robo does; the sandbox finds them on its own path.
 site=$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
-echo "$PWD/agent/py/lib" > "$site/r2g_agent_lib.pth"
+echo "$PWD/agent-host/py/lib" > "$site/r2g_agent_lib.pth"

@@ -1,4 +1,4 @@
-"""`r2g bench perception`: local perception (agent/py/lib/robo_perception.py) over the pack's
+"""`r2g bench perception`: local perception (agent-host/py/lib/robo_perception/) over the pack's
 graspable objects, at the cameras' native 640x480.
 
 For every free object of every gym: reset, observe agentview + wrist (raw RGB-D), segment the
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path[:0] = [str(ROOT / "tests" / "python"), str(ROOT / "agent" / "py" / "lib")]
+sys.path[:0] = [str(ROOT / "tests" / "python"), str(ROOT / "agent-host" / "py" / "lib")]
 import render_truth as rt  # noqa: E402
 import robo_perception as rp  # noqa: E402
 

@@ -1,10 +1,13 @@
 #![doc = include_str!("../README.md")]
 
+pub mod agent;
+pub mod all;
 pub mod control;
 pub mod ik;
 pub mod ipc;
 pub mod perception;
 pub mod robo;
+pub mod sim;
 pub mod tick;
 
 /// Prints a table: a header row and rows of cells, columns padded to fit.

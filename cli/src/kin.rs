@@ -1,29 +1,13 @@
 //! `r2g kin fk|ik`: forward and inverse kinematics over JSON lines, one answer per input line.
+//!
+//! This stays in the CLI: it is the command's wire format (parse a request line, call
+//! `controllers`' FK or IK, print an answer line) and holds no kinematics of its own.
 
 use std::io::{BufRead, Write};
-use std::path::PathBuf;
-
-use anyhow::{bail, Context};
+use anyhow::Context;
 use controllers::kinematics::{from_arrays, to_arrays};
-use controllers::{FrameId, IkConfig, IkSolver, Profile, RobotModel, N};
+use controllers::{FrameId, IkConfig, IkSolver, RobotModel, N};
 use serde_json::{json, Map, Value};
-
-/// The model named by `--robot`: `panda` or `fr3` (the shipped description with that limit
-/// profile) or a URDF file (read with the Panda profile for what URDF cannot express).
-pub fn load_robot(robot: &str, tcp: &str) -> anyhow::Result<RobotModel> {
-    let (path, profile) = match Profile::from_name(robot) {
-        Some(p) => (runtime::launch::robots_dir().join("panda").join("panda.urdf"), p),
-        None => {
-            let p = PathBuf::from(robot);
-            if !p.is_file() {
-                bail!("no robot '{robot}': give panda, fr3 or the path of a URDF file");
-            }
-            (p, Profile::Panda)
-        }
-    };
-    let xml = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    RobotModel::from_urdf_str(&xml, tcp, profile).with_context(|| format!("loading {}", path.display()))
-}
 
 /// The frame `--frame` names, or the TCP.
 pub fn frame(robot: &RobotModel, name: Option<&str>) -> anyhow::Result<FrameId> {
@@ -117,7 +101,7 @@ pub fn ik_line(solver: &IkSolver, line: &str) -> Value {
 
 /// Reads requests from stdin until it closes; blank lines are skipped.
 pub fn run(ik: bool, robot: &str, tcp: &str, frame_name: Option<&str>) -> anyhow::Result<i32> {
-    let model = load_robot(robot, tcp)?;
+    let model = runtime::launch::robot_by_name(robot, tcp)?;
     let frame = frame(&model, frame_name)?;
     let mut solver = IkSolver::new(&model, IkConfig::default())?;
     solver.set_frame(frame)?;
@@ -138,6 +122,7 @@ pub fn run(ik: bool, robot: &str, tcp: &str, frame_name: Option<&str>) -> anyhow
 #[cfg(test)]
 mod tests {
     use super::*;
+    use controllers::Profile;
 
     fn panda() -> RobotModel {
         let xml =

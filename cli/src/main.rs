@@ -6,15 +6,10 @@ use std::time::Duration;
 use clap::{Parser, Subcommand, ValueEnum};
 use ipc_schema::process;
 use ipc_schema::Mode;
+use agent_host::session;
 use runtime::launch::{self, Instance, UpOptions};
 
-mod agent_cmd;
-mod author;
-mod bench_all;
-mod clear;
-mod episode;
 mod kin;
-mod sim_bench;
 
 /// Counts allocations inside ticks, so `bench tick-compute` can report them.
 #[global_allocator]
@@ -86,14 +81,14 @@ enum Cmd {
     /// line (success, responses, tokens, wall time split, run_dir).
     Episode {
         #[command(flatten)]
-        opts: agent_cmd::EpisodeOpts,
+        opts: EpisodeArgs,
     },
     /// Several episodes and their metrics (success rate, responses, tokens, time split).
     Batch {
         #[arg(long, default_value_t = 3)]
         episodes: u32,
         #[command(flatten)]
-        opts: agent_cmd::EpisodeOpts,
+        opts: EpisodeArgs,
     },
     /// Write (or rewrite) the static HTML viewer of a run folder.
     View { run_dir: std::path::PathBuf },
@@ -133,6 +128,56 @@ enum Cmd {
         #[command(subcommand)]
         which: BenchCmd,
     },
+}
+
+/// Options of `r2g episode` and `r2g batch`.
+#[derive(clap::Args, Debug, Clone)]
+struct EpisodeArgs {
+    /// Gym name (see `r2g gyms`), gym folder, or scene file.
+    gym: String,
+    /// An endpoint TOML file (provider, base_url, model, api_key_env, ...), "scripted" (the
+    /// gym's recorded conversation) or "scripted:<conversation.json>".
+    #[arg(long, default_value = "scripted")]
+    llm: String,
+    /// Wire format for `--llm scripted`: openai or anthropic.
+    #[arg(long, default_value = "openai")]
+    provider: String,
+    #[arg(long, default_value_t = 50)]
+    max_decisions: u32,
+    /// Waypoints one program may post.
+    #[arg(long, default_value_t = 600)]
+    control_steps: u64,
+    /// Run the gym in wall-clock time instead of lockstep.
+    #[arg(long)]
+    wall: bool,
+    /// Run folder (default: runs/episodes/<gym>-<stamp>; for a batch, its folder).
+    #[arg(long)]
+    out: Option<std::path::PathBuf>,
+    #[arg(long)]
+    robot_config: Option<std::path::PathBuf>,
+    /// Wall-clock limit per program, s.
+    #[arg(long, default_value_t = 120.0)]
+    wall_s: f64,
+    /// Folder of append-only memory records (default: robot-skill/memory).
+    #[arg(long)]
+    memory: Option<std::path::PathBuf>,
+}
+
+impl From<EpisodeArgs> for session::EpisodeOpts {
+    fn from(a: EpisodeArgs) -> Self {
+        Self {
+            gym: a.gym,
+            llm: a.llm,
+            provider: a.provider,
+            max_decisions: a.max_decisions,
+            control_steps: a.control_steps,
+            wall: a.wall,
+            out: a.out,
+            robot_config: a.robot_config,
+            wall_s: a.wall_s,
+            memory: a.memory,
+        }
+    }
 }
 
 /// Options shared by `r2g kin fk` and `r2g kin ik`.
@@ -289,38 +334,49 @@ fn main() {
             let rc = robot_config.unwrap_or_else(launch::default_robot_config);
             up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc)
         }
-        Cmd::Clear { instance } => clear::run(&instance),
-        Cmd::Episode { opts } => agent_cmd::episode(&opts).and_then(|r| {
+        Cmd::Clear { instance } => runtime::operator::clear_fault(&instance).map(|(cleared, reason)| {
+            println!("{reason}");
+            if cleared {
+                0
+            } else {
+                1
+            }
+        }),
+        Cmd::Episode { opts } => session::episode(&opts.into()).and_then(|r| {
             println!("{}", serde_json::to_string(&r)?);
             Ok(if r.success { 0 } else { 1 })
         }),
-        Cmd::Batch { episodes, opts } => agent_cmd::batch(&opts, episodes).map(|v| {
+        Cmd::Batch { episodes, opts } => session::batch(&opts.into(), episodes).map(|v| {
             println!("{v}");
             0
         }),
-        Cmd::View { run_dir } => agent::viewer::write(&run_dir).map(|p| {
+        Cmd::View { run_dir } => agent_host::viewer::write(&run_dir).map(|p| {
             println!("{}", p.display());
             0
         }),
         Cmd::Exec { file, instance, budget, wall_s, cpu_s, observe_only, scratch } => {
-            exec(&file, &instance, budget, wall_s, cpu_s, observe_only, scratch)
+            let o = session::ExecOpts { instance, budget, wall_s, cpu_s, observe_only, scratch };
+            session::exec(&file, &o).map(|v| {
+                println!("{v}");
+                0
+            })
         }
         Cmd::Gyms => gyms(),
         Cmd::Replay { gym, seed, do_nothing, out } => replay(&gym, seed, do_nothing, &out),
-        Cmd::AuthorDemo { gym } => author::run(&gym).map(|_| 0),
-        Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => sim_bench::run(&gyms, frames).map(|_| 0),
+        Cmd::AuthorDemo { gym } => author_demo(&gym),
+        Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => bench::sim::run(&gyms, frames).map(|_| 0),
         Cmd::Kin { which: KinCmd::Fk { args } } => kin::run(false, &args.robot, &args.tcp, args.frame.as_deref()),
         Cmd::Kin { which: KinCmd::Ik { args } } => kin::run(true, &args.robot, &args.tcp, args.frame.as_deref()),
         Cmd::Bench { which: BenchCmd::Ik { targets, count } } => bench::ik::run(targets.as_deref(), count).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Tick { seconds, gym } } => bench::tick::run(&gym, seconds, false).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Jitter { seconds, gym } } => bench::tick::run(&gym, seconds, true).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Robo { samples, gym } } => bench::robo::run(&gym, samples).map(|_| 0),
-        Cmd::Bench { which: BenchCmd::Agent { episodes } } => agent_cmd::bench_agent(episodes).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::Agent { episodes } } => bench::agent::run(episodes).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Perception { gyms, no_lift } } => {
             bench::perception::run(&gyms, !no_lift).map(|_| 0)
         }
         Cmd::Bench { which: BenchCmd::All { jitter_seconds, out, quick } } => {
-            bench_all::run(jitter_seconds, &out, quick).map(|_| 0)
+            bench::all::run(jitter_seconds, &out, quick).map(|_| 0)
         }
         Cmd::Bench { which: BenchCmd::TickCompute { ticks } } => bench::control::tick_compute(ticks).map(|_| 0),
         Cmd::Bench { which: BenchCmd::LimiterFuzz { chunks, seed } } => {
@@ -346,32 +402,6 @@ fn main() {
     }
 }
 
-fn exec(
-    file: &std::path::Path,
-    instance: &str,
-    budget: u64,
-    wall_s: f64,
-    cpu_s: u64,
-    observe_only: bool,
-    scratch: Option<std::path::PathBuf>,
-) -> anyhow::Result<i32> {
-    let code = std::fs::read_to_string(file).map_err(|e| anyhow::anyhow!("reading {}: {e}", file.display()))?;
-    let root = launch::gyms_dir().parent().map(std::path::Path::to_path_buf).unwrap_or_default();
-    let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns());
-    let run_dir = root.join("runs").join("exec").join(&stamp);
-    let scratch = scratch.unwrap_or_else(|| run_dir.join("scratch"));
-    let limits = agent::worker::Limits { wall_s, cpu_s, ..Default::default() };
-    let cfg =
-        agent::worker::WorkerConfig { instance: instance.into(), scratch, log_dir: run_dir.join("logs"), root, limits };
-    let mut worker = agent::worker::Worker::new(cfg);
-    let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "program.py".into());
-    let r = worker.run(&code, &name, agent::worker::Budget { control_steps: budget, observe_only })?;
-    let mut v = serde_json::to_value(&r)?;
-    v["sandbox"] = serde_json::to_value(&worker.enforced)?;
-    println!("{v}");
-    Ok(0)
-}
-
 fn gyms() -> anyhow::Result<i32> {
     let names = launch::gym_names();
     if names.is_empty() {
@@ -385,7 +415,7 @@ fn gyms() -> anyhow::Result<i32> {
 
 fn replay(gym: &str, seed: u64, do_nothing: bool, out: &std::path::Path) -> anyhow::Result<i32> {
     let scene = launch::resolve_scene(gym)?;
-    let r = episode::replay(&scene, seed, do_nothing, Some(out))?;
+    let r = lockstep::replay(&scene, seed, do_nothing, Some(out))?;
     for (row, why) in &r.failures {
         eprintln!("r2g replay: chunk from row {row} did not execute: {why}");
     }
@@ -397,6 +427,12 @@ fn replay(gym: &str, seed: u64, do_nothing: bool, out: &std::path::Path) -> anyh
     }
     println!("{}", serde_json::to_string(&r.evaluation)?);
     Ok(if r.evaluation.success { 0 } else { 1 })
+}
+
+fn author_demo(gym: &str) -> anyhow::Result<i32> {
+    let d = lockstep::author_demo(&launch::resolve_scene(gym)?)?;
+    println!("wrote {} rows ({:.1} s at {} Hz) to {}", d.rows, d.rows as f64 / d.hz, d.hz, d.path.display());
+    Ok(0)
 }
 
 fn up(
@@ -423,17 +459,14 @@ fn up(
     let mut inst = Instance::up(&opts)?;
     println!("READY {instance}");
     std::io::stdout().flush()?;
-    loop {
-        if process::stop_requested() {
-            inst.stop();
+    match inst.supervise()? {
+        None => {
             eprintln!("r2g: instance '{instance}' stopped");
-            return Ok(0);
+            Ok(0)
         }
-        if let Some(what) = inst.exited()? {
+        Some(what) => {
             eprintln!("r2g: {what}; stopping instance '{instance}'");
-            inst.stop();
-            return Ok(1);
+            Ok(1)
         }
-        std::thread::sleep(Duration::from_millis(50));
     }
 }

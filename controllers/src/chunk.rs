@@ -9,6 +9,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3, Vector6};
 use crate::error::{Rejection, StepQuantity, Text};
 use crate::ik::IkSolver;
 use crate::limiter::LimiterConfig;
+use crate::reference::Reference;
 use crate::robot::RobotModel;
 use crate::safety::SafetyChecks;
 use crate::N;
@@ -98,20 +99,6 @@ fn check_values(w: usize, a: &[f64; 8]) -> Result<(), Rejection> {
 
 fn unsafe_at(w: usize, v: crate::collision::Violation<'_>) -> Rejection {
     Rejection::Unsafe { waypoint: w, detail: Text::of(format_args!("{v}")) }
-}
-
-/// A reference sample: where the arm should be, how fast it should move, and the gripper.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Reference {
-    pub q_rad: [f64; N],
-    pub dq_rad_s: [f64; N],
-    pub gripper: f64,
-    /// Per joint, where the current one-directional stretch of the reference ends: the next
-    /// waypoint at which it turns back, or the last one. The limiter never passes it.
-    pub goal_q_rad: [f64; N],
-    /// Waypoints whose segment has ended.
-    pub reached: usize,
-    pub finished: bool,
 }
 
 impl ChunkPlan {

@@ -8,6 +8,7 @@ pub mod ik;
 pub mod kinematics;
 pub mod limiter;
 pub mod math;
+pub mod reference;
 pub mod monitor;
 pub mod robot;
 pub mod safety;
@@ -18,6 +19,7 @@ pub use error::{Error, Rejection, StepQuantity};
 pub use ik::{IkConfig, IkError, IkSolution, IkSolver};
 pub use kinematics::{FrameId, Jacobian, Kinematics};
 pub use limiter::{JointTracker, LimiterConfig};
+pub use reference::Reference;
 pub use robot::{CartesianLimits, JointLimits, Profile, RobotModel};
 
 /// Arm joints of the supported robots.

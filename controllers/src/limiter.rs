@@ -9,7 +9,7 @@
 //! braking policy depends on the state alone, so from a state that passed the check its step
 //! stays on the checked path: the invariant holds tick after tick, in discrete time.
 
-use crate::chunk::Reference;
+use crate::reference::Reference;
 use crate::robot::{JointLimits, RobotModel};
 use crate::N;
 

@@ -1,6 +1,6 @@
 //! Property tests: whatever chunks arrive, and whenever, the command stream keeps every limit.
 
-use controllers::chunk::Reference;
+use controllers::Reference;
 use controllers::monitor::Monitor;
 use controllers::{ChunkPlan, JointTracker, LimiterConfig, Profile, RobotModel, N};
 use proptest::prelude::*;

@@ -1,6 +1,6 @@
 //! The controllers against the shipped Panda description.
 
-use controllers::chunk::Reference;
+use controllers::Reference;
 use controllers::{ChunkPlan, JointTracker, LimiterConfig, Profile, Rejection, RobotModel, N};
 
 fn panda() -> RobotModel {

@@ -16,7 +16,7 @@ import os
 import sys
 
 # robo_perception imports as is in the sandbox and in the project's .venv; this line serves other interpreters.
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "agent", "py", "lib"))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "agent-host", "py", "lib"))
 
 import numpy as np  # noqa: E402
 from robo import get_state, post_actions  # noqa: E402

@@ -2,7 +2,7 @@
 //! chunk, limit the command, and tell when a request has finished. The same code runs in
 //! wall and lockstep mode, so lockstep results carry over.
 
-use controllers::chunk::Reference;
+use controllers::Reference;
 use controllers::diffik::{self, DiffIkConfig};
 use controllers::error::Text;
 use controllers::ik::{IkConfig, IkSolver};

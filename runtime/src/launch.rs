@@ -8,6 +8,7 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
+use controllers::{Profile, RobotModel};
 use ipc_schema::process;
 use ipc_schema::{CameraFrame, Mode, Qos, RobotState, Services, SimInfo};
 
@@ -51,6 +52,23 @@ fn checkout_dir(var: &str, name: &str) -> PathBuf {
         return built_from;
     }
     PathBuf::from(name)
+}
+
+/// The robot model a name gives: `panda` or `fr3` (the shipped description with that limit
+/// profile) or a URDF file (read with the Panda profile for what URDF cannot express).
+pub fn robot_by_name(robot: &str, tcp: &str) -> anyhow::Result<RobotModel> {
+    let (path, profile) = match Profile::from_name(robot) {
+        Some(p) => (robots_dir().join("panda").join("panda.urdf"), p),
+        None => {
+            let p = PathBuf::from(robot);
+            if !p.is_file() {
+                bail!("no robot '{robot}': give panda, fr3 or the path of a URDF file");
+            }
+            (p, Profile::Panda)
+        }
+    };
+    let xml = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    RobotModel::from_urdf_str(&xml, tcp, profile).with_context(|| format!("loading {}", path.display()))
 }
 
 /// The gyms of the pack: folders of `gyms/` that hold a `scene.toml`, sorted.
@@ -275,6 +293,23 @@ impl Instance {
             return Ok(Some(describe("r2g-control", self.control.id(), s)));
         }
         Ok(None)
+    }
+
+    /// Supervises the instance until a stop signal arrives (see
+    /// [`process::install_stop_signals`](ipc_schema::process::install_stop_signals)) or a child
+    /// exits, then stops both. `None`: stopped on request; `Some(what)`: which child ended and how.
+    pub fn supervise(&mut self) -> anyhow::Result<Option<String>> {
+        loop {
+            if ipc_schema::process::stop_requested() {
+                self.stop();
+                return Ok(None);
+            }
+            if let Some(what) = self.exited()? {
+                self.stop();
+                return Ok(Some(what));
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
     }
 
     /// Waits for r2g-control to end by itself (benchmarks with --duration-s).

@@ -3,6 +3,7 @@
 pub mod alloc_count;
 pub mod controller;
 pub mod launch;
+pub mod operator;
 pub mod robot_config;
 pub mod rt;
 pub mod stats;

@@ -23,7 +23,7 @@ import pytest
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
-SHIM = ROOT / "agent" / "py" / "lib"
+SHIM = ROOT / "agent-host" / "py" / "lib"
 EXAMPLE = ROOT / "robot-skill" / "examples" / "pick_object.py"
 sys.path.insert(0, str(SHIM))
 import robo_perception as rp  # noqa: E402
@@ -135,15 +135,17 @@ def test_clustering_and_naming_offline():
     a = _box_cloud(np.array([0.5, -0.1, 0.02]), 0.2, np.array([0.04, 0.04, 0.04]), seed=5)
     b = _box_cloud(np.array([0.5, 0.1, 0.03]), 0.0, np.array([0.06, 0.05, 0.06]), seed=6)
     P = np.concatenate([a, b])
-    groups = rp._euclidean_groups(P, 0.006, 20)
+    from robo_perception.segmentation import _chromaticity, _color_modes
+    from robo_perception.voxels import _euclidean_groups
+    groups = _euclidean_groups(P, 0.006, 20)
     assert sorted(len(g) for g in groups) == sorted([len(a), len(b)])
     # colour split separates two touching boxes of different colours
     touching = np.concatenate([a, a + [0.04, 0, 0]])
     cols = np.concatenate([np.tile([230, 40, 30], (len(a), 1)), np.tile([60, 140, 240], (len(a), 1))]).astype(np.uint8)
-    g = rp._euclidean_groups(touching, 0.006, 20)
+    g = _euclidean_groups(touching, 0.006, 20)
     assert len(g) == 1
-    modes = rp._color_modes(rp._chromaticity(cols), 0.06, 20)
-    assert modes is not None and len(rp._euclidean_groups(touching, 0.006, 20, modes)) == 2
+    modes = _color_modes(_chromaticity(cols), 0.06, 20)
+    assert modes is not None and len(_euclidean_groups(touching, 0.006, 20, modes)) == 2
     swatches = {"red": (230, 40, 30), "green": (40, 150, 60), "blue": (50, 110, 240), "yellow": (240, 220, 30),
                 "orange": (250, 150, 40), "purple": (140, 60, 200), "white": (245, 245, 240),
                 "grey": (120, 120, 125), "black": (20, 20, 20), "brown": (120, 80, 45)}

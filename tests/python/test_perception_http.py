@@ -31,14 +31,14 @@ import pytest
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
-sys.path.insert(0, str(ROOT / "agent" / "py" / "lib"))
+sys.path.insert(0, str(ROOT / "agent-host" / "py" / "lib"))
 import pngdecode  # noqa: E402
 import robo_perception as rp  # noqa: E402
 import robo_services as rs  # noqa: E402
 
 R2G = ROOT / "target" / "release" / "r2g"
-PROXY = ROOT / "agent" / "py" / "robo_proxy.py"
-SHIM = ROOT / "agent" / "py" / "shim" / "robo.py"
+PROXY = ROOT / "agent-host" / "py" / "robo_proxy.py"
+SHIM = ROOT / "agent-host" / "py" / "shim" / "robo.py"
 BLOCK = np.array([0.5, -0.12, 0.02])  # pick_block_plate: centre of the 4 cm red block
 
 
@@ -651,7 +651,7 @@ def test_http_backend_down_raises_instead_of_falling_back(obs, configure):
 
 @pytest.fixture
 def proxied(lockstep, monkeypatch, tmp_path):
-    """The real robo_proxy.py serving the real shim (agent/py/shim/robo.py) over a socketpair;
+    """The real robo_proxy.py serving the real shim (agent-host/py/shim/robo.py) over a socketpair;
     the shim is installed as `robo` while the test runs, as in the sandbox. The proxy's
     R2G_PERCEPTION_CONFIG is the path `configure` writes."""
     monkeypatch.setenv(rs.CONFIG_ENV, str(tmp_path / "perception.json"))

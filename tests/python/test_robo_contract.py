@@ -350,7 +350,7 @@ def test_the_type_stubs_describe_the_module_as_built() -> None:
     import ast
     import inspect
 
-    tree = ast.parse((ROOT / "agent-host" / "robo.pyi").read_text())
+    tree = ast.parse((ROOT / "robo" / "robo.pyi").read_text())
     funcs: dict[str, list[ast.FunctionDef]] = {}
     for node in tree.body:
         if isinstance(node, ast.FunctionDef):
@@ -372,7 +372,7 @@ def test_the_type_stubs_describe_the_module_as_built() -> None:
 def stub_keys(name: str) -> set[str]:
     import ast
 
-    classes = {n.name: n for n in ast.parse((ROOT / "agent-host" / "robo.pyi").read_text()).body if isinstance(n, ast.ClassDef)}
+    classes = {n.name: n for n in ast.parse((ROOT / "robo" / "robo.pyi").read_text()).body if isinstance(n, ast.ClassDef)}
     keys: set[str] = set()
     todo = [name]
     while todo:

@@ -1,9 +1,9 @@
-//! `r2g author-demo`: turns a gym's hand-written TCP keyframes into its demonstration, a joint +
+//! Demonstrations authored from a gym's hand-written TCP keyframes (`r2g author-demo`): a joint +
 //! gripper trajectory at the scene's demonstration rate. The TCP moves on straight lines
 //! (orientation by slerp) with a quintic time law between keyframes; every row is solved by
 //! the project's IK, seeded with the previous row, so the joint path is continuous.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use controllers::kinematics::{from_arrays, to_arrays};
@@ -66,13 +66,20 @@ fn slerp(a: Quat, b: Quat, s: f64) -> Quat {
     [0, 1, 2, 3].map(|k| wa * a[k] + wb * b[k])
 }
 
-/// Writes `task.demonstration` of the scene from `<scene folder>/keyframes.toml`.
-pub fn run(gym: &str) -> anyhow::Result<()> {
-    let scene_path = runtime::launch::resolve_scene(gym)?;
-    let scene = sim_host::Scene::load(&scene_path).or_else(|e| {
+/// What [`author_demo`] wrote.
+#[derive(Debug, Clone)]
+pub struct AuthoredDemo {
+    pub path: PathBuf,
+    pub rows: usize,
+    pub hz: f64,
+}
+
+/// Writes `task.demonstration` of the scene file `scene_path` from `<scene folder>/keyframes.toml`.
+pub fn author_demo(scene_path: &Path) -> anyhow::Result<AuthoredDemo> {
+    let scene = sim_host::Scene::load(scene_path).or_else(|e| {
         // The demonstration may not exist yet: that is what we are about to write.
         if e.to_string().contains("task.demonstration") {
-            let text = std::fs::read_to_string(&scene_path)?;
+            let text = std::fs::read_to_string(scene_path)?;
             let mut t: toml::Table = toml::from_str(&text)?;
             if let Some(task) = t.get_mut("task").and_then(|v| v.as_table_mut()) {
                 task.remove("demonstration");
@@ -90,7 +97,7 @@ pub fn run(gym: &str) -> anyhow::Result<()> {
     let kf_path = dir.join("keyframes.toml");
     let text = std::fs::read_to_string(&kf_path).with_context(|| format!("reading {}", kf_path.display()))?;
     let kf: Keyframes = toml::from_str(&text).with_context(|| format!("parsing {}", kf_path.display()))?;
-    let (robot, _) = runtime::scene_robot(&scene_path)?;
+    let (robot, _) = runtime::scene_robot(scene_path)?;
     let ik = IkSolver::new(&robot, IkConfig { limit_margin_rad: 0.05, ..IkConfig::default() })?;
     let hz = scene.task.demonstration_hz;
     let mut q = scene.robot.initial_joints_rad;
@@ -140,7 +147,6 @@ pub fn run(gym: &str) -> anyhow::Result<()> {
         rot = target_r;
     }
     let out = scene.task.demonstration.clone().unwrap_or_else(|| dir.join("demo.csv"));
-    crate::episode::write_demo(&out, &rows)?;
-    println!("wrote {} rows ({:.1} s at {hz} Hz) to {}", rows.len(), rows.len() as f64 / hz, out.display());
-    Ok(())
+    crate::demo::write_demo(&out, &rows)?;
+    Ok(AuthoredDemo { path: out, rows: rows.len(), hz })
 }

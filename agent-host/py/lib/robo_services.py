@@ -68,7 +68,7 @@ PREGRASP_OFFSET = 0.10
 OPEN_MARGIN = 0.016
 """Added to a remote grasp's width to get the opening to approach with (m)."""
 PROXY_FRAME_LIMIT = 1 << 20
-"""The proxy drops a worker whose request frame is larger than this (agent/py/robo_proxy.py)."""
+"""The proxy drops a worker whose request frame is larger than this (agent-host/py/robo_proxy.py)."""
 MAX_SIDE = 4096
 
 
@@ -575,7 +575,7 @@ def _remote_frame_args(fr: dict, camera: str) -> dict:
 
 
 def serve_proxy(op: str, payload: Any, frame: Callable[[str, float, tuple[int, int]], dict]) -> Any:
-    """The proxy's side of ``robo._call("perception", op, payload)`` (agent/py/robo_proxy.py).
+    """The proxy's side of ``robo._call("perception", op, payload)`` (agent-host/py/robo_proxy.py).
 
     ``frame(camera, image_timestamp, (H, W))`` returns ``{"image", "depth", "intrinsics"}`` of the
     frame the program observed, or raises. ``payload`` comes from the untrusted program and is

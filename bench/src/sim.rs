@@ -8,7 +8,7 @@ use ipc_schema::{ControlType, JointCommand, MAX_CHUNK};
 use serde_json::{json, Map, Value};
 use sim_host::render::Cameras;
 
-use crate::episode::{read_demo, Episode};
+use lockstep::{read_demo, Episode};
 
 fn median(v: &mut [f64]) -> f64 {
     v.sort_by(f64::total_cmp);

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::Instant;
 
-use agent::llm::{Client, EndpointConfig, LlmError, Message, Part, Role};
+use agent_host::llm::{Client, EndpointConfig, LlmError, Message, Part, Role};
 
 struct Server {
     child: Child,
@@ -18,9 +18,9 @@ impl Server {
     fn start() -> Self {
         let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
         let mut child = Command::new(root.join(".venv/bin/python"))
-            .arg(root.join("agent/py/scripted_llm.py"))
+            .arg(root.join("agent-host/py/scripted_llm.py"))
             .arg("--script")
-            .arg(root.join("agent/scripted/pick_block_plate.json"))
+            .arg(root.join("agent-host/scripted/pick_block_plate.json"))
             .args(["--port", "0"])
             .stdout(Stdio::piped())
             .stderr(Stdio::null())

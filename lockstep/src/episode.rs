@@ -1,16 +1,17 @@
-//! Episodes in lockstep inside one process: the runtime's controller ticks at the scene's
-//! physics rate and the simulator steps once per command, exactly as `r2g-control` and
-//! `r2g-sim` do in lockstep mode, minus the shared memory. Used to replay a gym's
-//! demonstration, to judge it with the native evaluator, and to time physics.
+//! One episode in one process: the runtime's controller ticks at the scene's physics rate and
+//! the simulator steps once per command, exactly as `r2g-control` and `r2g-sim` do in lockstep
+//! mode, minus the shared memory.
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context};
+use anyhow::Context;
 use controllers::LimiterConfig;
 use ipc_schema::{ControlType, JointCommand, Reply, Request, RequestKind, Status, MAX_CHUNK, WAYPOINT_LEN};
 use runtime::controller::Controller;
 use sim_host::trace::{evaluate, Evaluation, Trace};
 use sim_host::Sim;
+
+use crate::demo::{read_demo, write_atomic};
 
 pub struct Episode {
     pub sim: Sim,
@@ -93,52 +94,6 @@ impl Episode {
     }
 }
 
-/// Reads a demonstration: CSV rows of q1..q7 (rad) and the gripper (−1 open … +1 closed); a
-/// first line that is not numbers is a header.
-pub fn read_demo(path: &Path) -> anyhow::Result<Vec<[f64; WAYPOINT_LEN]>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading demonstration {}", path.display()))?;
-    let mut rows = Vec::new();
-    for (i, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let cells: Vec<&str> = line.split(',').map(str::trim).collect();
-        let parsed: Result<Vec<f64>, _> = cells.iter().map(|c| c.parse::<f64>()).collect();
-        match parsed {
-            Err(_) if rows.is_empty() && i == 0 => continue,
-            Err(_) => bail!("{}: line {}: not a row of numbers", path.display(), i + 1),
-            Ok(v) if v.len() != WAYPOINT_LEN || !v.iter().all(|x| x.is_finite()) => {
-                bail!(
-                    "{}: line {}: expected {WAYPOINT_LEN} finite numbers (q1..q7, gripper), got {}",
-                    path.display(),
-                    i + 1,
-                    v.len()
-                )
-            }
-            Ok(v) => {
-                let mut row = [0.0; WAYPOINT_LEN];
-                row.copy_from_slice(&v);
-                rows.push(row);
-            }
-        }
-    }
-    if rows.is_empty() {
-        bail!("{}: the demonstration has no rows", path.display());
-    }
-    Ok(rows)
-}
-
-/// Writes a demonstration in the format [`read_demo`] reads.
-pub fn write_demo(path: &Path, rows: &[[f64; WAYPOINT_LEN]]) -> anyhow::Result<()> {
-    let mut out = String::from("q1,q2,q3,q4,q5,q6,q7,gripper\n");
-    for r in rows {
-        out.push_str(&r.iter().map(|v| format!("{v:.6}")).collect::<Vec<_>>().join(","));
-        out.push('\n');
-    }
-    std::fs::write(path, out).with_context(|| format!("writing {}", path.display()))
-}
-
 /// How a replay went.
 pub struct Replay {
     pub evaluation: Evaluation,
@@ -175,9 +130,9 @@ pub fn replay(scene: &Path, seed: u64, do_nothing: bool, out: Option<&Path>) -> 
         Some(dir) => {
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
             let p = dir.join(format!("{}-seed{seed}.trace.json", ep.sim.scene.name));
-            std::fs::write(&p, serde_json::to_vec(&ep.trace)?).with_context(|| format!("writing {}", p.display()))?;
+            write_atomic(&p, &serde_json::to_vec(&ep.trace)?)?;
             let e = dir.join(format!("{}-seed{seed}.eval.json", ep.sim.scene.name));
-            std::fs::write(&e, serde_json::to_vec_pretty(&evaluation)?)?;
+            write_atomic(&e, &serde_json::to_vec_pretty(&evaluation)?)?;
             Some(p)
         }
         None => None,

@@ -28,7 +28,7 @@ _services = None
 
 
 def services():
-    """robo_services (agent/py/lib), imported on first use: this process runs isolated (-I)."""
+    """robo_services (agent-host/py/lib), imported on first use: this process runs isolated (-I)."""
     global _services
     if _services is None:
         lib = os.path.join(os.path.dirname(os.path.abspath(__file__)), "lib")

@@ -57,7 +57,7 @@ pub struct WorkerConfig {
     pub scratch: PathBuf,
     /// Host-only folder for the worker's raw output and the proxy's log.
     pub log_dir: PathBuf,
-    /// The project's root (for `.venv`, `agent/py`, `robot-skill`).
+    /// The project's root (for `.venv`, `agent-host/py`, `robot-skill`).
     pub root: PathBuf,
     pub limits: Limits,
 }
@@ -267,7 +267,7 @@ impl Worker {
         let read = [
             prefix.clone(),
             root.join(".venv"),
-            root.join("agent/py"),
+            root.join("agent-host/py"),
             root.join("robot-skill/SKILL.md"),
             root.join("robot-skill/api"),
             root.join("robot-skill/config"),
@@ -311,7 +311,7 @@ impl Worker {
     fn spawn_proxy(&self, robo_end: &UnixStream) -> anyhow::Result<Proxy> {
         let mut cmd = Command::new(self.python());
         cmd.args(["-I", "-B"])
-            .arg(self.cfg.root.join("agent/py/robo_proxy.py"))
+            .arg(self.cfg.root.join("agent-host/py/robo_proxy.py"))
             .env_clear()
             .env("R2G_INSTANCE", &self.cfg.instance)
             .env("PATH", "/usr/bin:/bin")
@@ -383,7 +383,7 @@ impl Worker {
             .arg("5")
             .arg(self.python())
             .args(["-I", "-B"])
-            .arg(self.cfg.root.join("agent/py/runner.py"))
+            .arg(self.cfg.root.join("agent-host/py/runner.py"))
             .env_clear()
             .env("HOME", &self.cfg.scratch)
             .env("LANG", "C.UTF-8")

@@ -1,12 +1,14 @@
-//! `r2g clear`: the operator's way to clear an `operator_required` fault. Deliberately not part
-//! of `robo`: generated code must never clear a fault.
+//! The operator's requests to a running instance (`r2g clear`). Deliberately not part of `robo`:
+//! generated code must never clear a fault.
 
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use ipc_schema::{process, Qos, Reply, Request, RequestKind, Services, Status};
 
-pub fn run(instance: &str) -> anyhow::Result<i32> {
+/// Asks the runtime of `instance` to clear an `operator_required` fault; returns whether it did
+/// and the runtime's reason.
+pub fn clear_fault(instance: &str) -> anyhow::Result<(bool, String)> {
     let services = Services::new(instance)?;
     if process::node_alive(&process::control_node(instance)) != Some(true) {
         bail!("no r2g instance '{instance}' is running");
@@ -42,9 +44,7 @@ pub fn run(instance: &str) -> anyhow::Result<i32> {
     while t0.elapsed() < Duration::from_secs(5) {
         while let Some(r) = replies.receive().context("reply")? {
             if r.client == client && r.id == 1 {
-                let ok = r.status == Status::Executed as u32;
-                println!("{}", r.reason_str());
-                return Ok(if ok { 0 } else { 1 });
+                return Ok((r.status == Status::Executed as u32, r.reason_str().to_string()));
             }
         }
         std::thread::sleep(Duration::from_millis(2));

@@ -1,48 +1,41 @@
-//! `r2g episode` and `r2g batch`: the agent loop against a gym instance this command starts,
-//! with a configured LLM endpoint or the scripted one (`--llm scripted`), judged afterwards by
-//! the native evaluator.
+//! Whole runs of the agent host (`r2g episode`, `r2g batch`, `r2g exec`): the stage-code loop
+//! against a gym instance started here, with a configured LLM endpoint or the scripted one
+//! (`scripted`: a recorded conversation served on loopback), judged afterwards by the native
+//! evaluator; and one program in the sandbox against a running instance.
 
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use agent::episode::{self, EpisodeConfig, EpisodeResult};
-use agent::llm::EndpointConfig;
+use crate::episode::{self, EpisodeConfig, EpisodeResult};
+use crate::llm::EndpointConfig;
 use anyhow::{bail, Context};
 use ipc_schema::Mode;
 use runtime::launch::{self, Instance, UpOptions};
 use serde_json::{json, Value};
 
-#[derive(clap::Args, Debug, Clone)]
+/// What one episode runs; `r2g episode` fills it from its arguments.
+#[derive(Debug, Clone)]
 pub struct EpisodeOpts {
     /// Gym name (see `r2g gyms`), gym folder, or scene file.
     pub gym: String,
     /// An endpoint TOML file (provider, base_url, model, api_key_env, ...), "scripted" (the
     /// gym's recorded conversation) or "scripted:<conversation.json>".
-    #[arg(long, default_value = "scripted")]
     pub llm: String,
     /// Wire format for `--llm scripted`: openai or anthropic.
-    #[arg(long, default_value = "openai")]
     pub provider: String,
-    #[arg(long, default_value_t = 50)]
     pub max_decisions: u32,
     /// Waypoints one program may post.
-    #[arg(long, default_value_t = 600)]
     pub control_steps: u64,
     /// Run the gym in wall-clock time instead of lockstep.
-    #[arg(long)]
     pub wall: bool,
     /// Run folder (default: runs/episodes/<gym>-<stamp>; for a batch, its folder).
-    #[arg(long)]
     pub out: Option<PathBuf>,
-    #[arg(long)]
     pub robot_config: Option<PathBuf>,
     /// Wall-clock limit per program, s.
-    #[arg(long, default_value_t = 120.0)]
     pub wall_s: f64,
     /// Folder of append-only memory records (default: robot-skill/memory).
-    #[arg(long)]
     pub memory: Option<PathBuf>,
 }
 
@@ -54,12 +47,12 @@ pub struct Scripted {
 
 impl Scripted {
     pub fn start(root: &Path, gym: &str, script: Option<&Path>, log: Option<&Path>) -> anyhow::Result<Self> {
-        let script = script.map_or_else(|| root.join("agent/scripted").join(format!("{gym}.json")), Path::to_path_buf);
+        let script = script.map_or_else(|| root.join("agent-host/scripted").join(format!("{gym}.json")), Path::to_path_buf);
         if !script.is_file() {
             bail!("no scripted conversation for gym '{gym}' ({} is missing)", script.display());
         }
         let mut cmd = Command::new(root.join(".venv/bin/python"));
-        cmd.arg(root.join("agent/py/scripted_llm.py")).arg("--script").arg(&script).args(["--port", "0"]);
+        cmd.arg(root.join("agent-host/py/scripted_llm.py")).arg("--script").arg(&script).args(["--port", "0"]);
         if let Some(l) = log {
             cmd.arg("--log").arg(l);
         }
@@ -94,7 +87,8 @@ impl Drop for Scripted {
     }
 }
 
-fn root() -> PathBuf {
+/// The checkout the binaries run from (its `gyms/`, `.venv/`, `agent-host/`, `robot-skill/`).
+pub fn root() -> PathBuf {
     launch::gyms_dir().parent().map(Path::to_path_buf).unwrap_or_default()
 }
 
@@ -146,7 +140,7 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
         endpoint,
         max_decisions: o.max_decisions,
         control_steps: o.control_steps,
-        limits: agent::worker::Limits { wall_s: o.wall_s, ..Default::default() },
+        limits: crate::worker::Limits { wall_s: o.wall_s, ..Default::default() },
         run_dir: run_dir.clone(),
         lockstep: !o.wall,
         robot_config: o.robot_config.clone(),
@@ -161,7 +155,7 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
     result.success = eval["success"].as_bool().unwrap_or(false);
     result.evaluation = eval;
     std::fs::write(run_dir.join("result.json"), serde_json::to_vec_pretty(&result)?)?;
-    agent::viewer::write(&run_dir)?;
+    crate::viewer::write(&run_dir)?;
     Ok(result)
 }
 
@@ -197,8 +191,8 @@ pub fn batch(o: &EpisodeOpts, episodes: u32) -> anyhow::Result<Value> {
 }
 
 /// The stage programs of a recorded conversation, in order.
-fn scripted_programs(root: &Path, gym: &str) -> anyhow::Result<Vec<String>> {
-    let path = root.join("agent/scripted").join(format!("{gym}.json"));
+pub fn scripted_programs(root: &Path, gym: &str) -> anyhow::Result<Vec<String>> {
+    let path = root.join("agent-host/scripted").join(format!("{gym}.json"));
     let v: Value = serde_json::from_str(&std::fs::read_to_string(&path)?)?;
     Ok(v["responses"]
         .as_array()
@@ -209,89 +203,41 @@ fn scripted_programs(root: &Path, gym: &str) -> anyhow::Result<Vec<String>> {
         .collect())
 }
 
-/// `r2g bench agent`: host overhead per decision of the loop (scripted endpoint on loopback, so
-/// model time is tiny and measured), beside the same stage programs run bare (plain Python and
-/// the real `robo`, no sandbox, no LLM, no records) on a fresh instance in the same run.
-pub fn bench_agent(episodes: u32) -> anyhow::Result<Value> {
-    let root = root();
-    let gym = "pick_block_plate";
-    let dir = std::env::temp_dir().join(format!("r2g-bench-agent-{}", std::process::id()));
-    let mut rows = Vec::new();
-    for i in 0..episodes.max(1) {
-        let o = EpisodeOpts {
-            gym: gym.into(),
-            llm: "scripted".into(),
-            provider: if i % 2 == 0 { "openai" } else { "anthropic" }.into(),
-            max_decisions: 50,
-            control_steps: 600,
-            wall: false,
-            out: Some(dir.join(format!("episode-{i}"))),
-            robot_config: None,
-            wall_s: 120.0,
-            memory: Some(dir.join("memory")),
-        };
-        let r = episode(&o)?;
-        if !r.success {
-            bail!("benchmark episode {i} did not succeed: {}", r.stop_reason);
-        }
-        rows.push(r);
-    }
-    // Baseline: the same programs, bare.
-    let programs = scripted_programs(&root, gym)?;
-    let scratch = dir.join("bare");
-    std::fs::create_dir_all(&scratch)?;
-    let instance = format!("benchagent{}", std::process::id());
-    let opts = UpOptions {
-        scene: launch::resolve_scene(gym)?,
-        instance: instance.clone(),
-        mode: Mode::Lockstep,
-        render_hz: 10.0,
-        control_args: Vec::new(),
-        sim_args: Vec::new(),
-        robot_config: Some(launch::default_robot_config()),
-        ready_timeout: Duration::from_secs(60),
-    };
-    let mut inst = Instance::up(&opts)?;
-    let python = root.join(".venv/bin/python");
-    let run_bare = |code: &str| -> anyhow::Result<f64> {
-        let t0 = std::time::Instant::now();
-        let st = Command::new(&python)
-            .args(["-c", code])
-            .current_dir(&scratch)
-            .env("R2G_INSTANCE", &instance)
-            .stdout(Stdio::null())
-            .status()?;
-        if !st.success() {
-            bail!("a bare stage program failed: {st}");
-        }
-        Ok(t0.elapsed().as_secs_f64())
-    };
-    let bare = run_bare("import robo; assert robo.reset() == 1")
-        .and_then(|_| programs.iter().map(|p| run_bare(p)).sum::<anyhow::Result<f64>>());
-    inst.stop();
-    let bare_s = bare?;
-    let _ = std::fs::remove_dir_all(&dir);
+/// What `r2g exec` runs: one program in the sandbox against a running instance.
+#[derive(Debug, Clone)]
+pub struct ExecOpts {
+    pub instance: String,
+    /// Waypoints the program may post.
+    pub budget: u64,
+    pub wall_s: f64,
+    pub cpu_s: u64,
+    /// Refuse reset and post_actions (an observation-only turn).
+    pub observe_only: bool,
+    /// Scratch folder (default: a new one under runs/exec/).
+    pub scratch: Option<PathBuf>,
+}
 
-    let mean = |f: &dyn Fn(&EpisodeResult) -> f64| rows.iter().map(f).sum::<f64>() / rows.len() as f64;
-    let per_decision = mean(&|r| (r.wall_s - r.model_s) / f64::from(r.responses.max(1)) * 1e3);
-    let host = mean(&|r| r.overhead_s / f64::from(r.responses.max(1)) * 1e3);
-    let exec = mean(&|r| r.exec_s);
-    let figures = json!({
-        "episodes": rows.len(),
-        "responses": mean(&|r| f64::from(r.responses)),
-        "overhead_per_decision_ms": per_decision,
-        "host_only_per_decision_ms": host,
-        "model_per_decision_ms": mean(&|r| r.model_s / f64::from(r.responses.max(1)) * 1e3),
-        "sandboxed_programs_s": exec,
-        "bare_programs_s": bare_s,
-        "sandbox_over_bare": exec / bare_s,
-        "wall_s": mean(&|r| r.wall_s),
-    });
-    println!("agent loop on {gym}, scripted endpoint on loopback, lockstep ({} episodes)", rows.len());
-    println!("{:<44} {:>10}", "per decision: everything but model time", format!("{per_decision:.1} ms"));
-    println!("{:<44} {:>10}", "per decision: host only (no model, no program)", format!("{host:.1} ms"));
-    println!("{:<44} {:>10}", "stage programs in the sandbox (per episode)", format!("{exec:.2} s"));
-    println!("{:<44} {:>10}", "same programs bare (python + robo)", format!("{bare_s:.2} s"));
-    println!("{figures}");
-    Ok(figures)
+/// Runs the program in `file` once in a confined worker; the result (stdout, stderr, exit,
+/// violation, control steps) with what the sandbox enforced under `"sandbox"`.
+pub fn exec(file: &Path, o: &ExecOpts) -> anyhow::Result<Value> {
+    let code = std::fs::read_to_string(file).with_context(|| format!("reading {}", file.display()))?;
+    let root = root();
+    let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns());
+    let run_dir = root.join("runs").join("exec").join(&stamp);
+    let scratch = o.scratch.clone().unwrap_or_else(|| run_dir.join("scratch"));
+    let limits = crate::worker::Limits { wall_s: o.wall_s, cpu_s: o.cpu_s, ..Default::default() };
+    let cfg = crate::worker::WorkerConfig {
+        instance: o.instance.clone(),
+        scratch,
+        log_dir: run_dir.join("logs"),
+        root,
+        limits,
+    };
+    let mut worker = crate::worker::Worker::new(cfg);
+    let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "program.py".into());
+    let budget = crate::worker::Budget { control_steps: o.budget, observe_only: o.observe_only };
+    let r = worker.run(&code, &name, budget)?;
+    let mut v = serde_json::to_value(&r)?;
+    v["sandbox"] = serde_json::to_value(&worker.enforced)?;
+    Ok(v)
 }

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """A scripted LLM HTTP server for testing LLM clients without a real provider.
 
-    python agent/py/scripted_llm.py --script FILE [--port 0] [--log DIR]
+    python agent-host/py/scripted_llm.py --script FILE [--port 0] [--log DIR]
 
 prints ``LISTENING <port>`` on stdout once it accepts connections and serves on 127.0.0.1
 until SIGTERM (or Ctrl-C). Standard library only.

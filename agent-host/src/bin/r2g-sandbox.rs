@@ -1,4 +1,4 @@
-//! r2g-sandbox: confines itself (see `agent::sandbox`) and then executes the worker.
+//! r2g-sandbox: confines itself (see `agent_host::sandbox`) and then executes the worker.
 //!
 //! `r2g-sandbox POLICY_JSON STATUS_FD PROGRAM [ARGS...]`. Writes one JSON line saying what was
 //! enforced to STATUS_FD (then closes it), or `{"error": ...}` and exits 126 when confinement
@@ -24,9 +24,9 @@ fn main() {
     }
     // SAFETY: the host hands us this descriptor open for writing; we own it from here.
     let mut status = unsafe { std::fs::File::from_raw_fd(fd) };
-    let result = serde_json::from_str::<agent::sandbox::Policy>(&args[1])
+    let result = serde_json::from_str::<agent_host::sandbox::Policy>(&args[1])
         .map_err(anyhow::Error::from)
-        .and_then(|p| agent::sandbox::confine(&p));
+        .and_then(|p| agent_host::sandbox::confine(&p));
     match result {
         Ok(enforced) => {
             let _ = writeln!(status, "{}", serde_json::json!({ "enforced": enforced }));

@@ -38,16 +38,16 @@ pub fn run(jitter_s: f64, out: &Path, quick: bool) -> anyhow::Result<Value> {
     let (ipc_only, n, gyms) =
         if quick { (Some(":frame"), 10, vec!["pick_block_plate".to_string()]) } else { (None, 1, vec![]) };
     let benches: Vec<Bench> = vec![
-        ("ipc", Box::new(move || bench::ipc::run(ipc_only))),
-        ("robo", Box::new(move || bench::robo::run("pick_block_plate", if quick { 200 } else { 2000 }))),
-        ("agent", Box::new(move || crate::agent_cmd::bench_agent(if quick { 1 } else { 3 }))),
-        ("perception", Box::new(move || bench::perception::run(&quick_gym(quick), !quick))),
-        ("jitter", Box::new(move || bench::tick::run("pick_block_plate", jitter_s, true))),
-        ("tick", Box::new(move || bench::tick::run("pick_block_plate", (jitter_s / 6.0).max(3.0), false))),
-        ("tick_compute", Box::new(move || bench::control::tick_compute(200_000 / n))),
-        ("ik", Box::new(move || bench::ik::run(None, 10_000 / n as usize))),
-        ("limiter_fuzz", Box::new(move || bench::control::limiter_fuzz(200_000 / n, 1))),
-        ("sim", Box::new(move || crate::sim_bench::run(&gyms, if quick { 3 } else { 20 }))),
+        ("ipc", Box::new(move || crate::ipc::run(ipc_only))),
+        ("robo", Box::new(move || crate::robo::run("pick_block_plate", if quick { 200 } else { 2000 }))),
+        ("agent", Box::new(move || crate::agent::run(if quick { 1 } else { 3 }))),
+        ("perception", Box::new(move || crate::perception::run(&quick_gym(quick), !quick))),
+        ("jitter", Box::new(move || crate::tick::run("pick_block_plate", jitter_s, true))),
+        ("tick", Box::new(move || crate::tick::run("pick_block_plate", (jitter_s / 6.0).max(3.0), false))),
+        ("tick_compute", Box::new(move || crate::control::tick_compute(200_000 / n))),
+        ("ik", Box::new(move || crate::ik::run(None, 10_000 / n as usize))),
+        ("limiter_fuzz", Box::new(move || crate::control::limiter_fuzz(200_000 / n, 1))),
+        ("sim", Box::new(move || crate::sim::run(&gyms, if quick { 3 } else { 20 }))),
     ];
     let started = Instant::now();
     let mut results = serde_json::Map::new();

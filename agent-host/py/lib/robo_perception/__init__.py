@@ -1,0 +1,80 @@
+"""Local RGB-D perception for `robo` stage programs (numpy + standard library only).
+
+Three layers, each usable on its own:
+
+* **Geometry** - frame conversions (pose <-> 4x4, axis-angle <-> matrix, base <-> camera),
+  back-projection of pixels and depth images into the robot base frame, oriented bounding
+  boxes (PCA or minimum-area in a support plane), RANSAC plane fitting, normals.
+* **Segmentation** - removes the support plane, clusters what stands on it with a voxel-grid
+  connected-components pass (optionally split where the colour changes), names each cluster's
+  colour and shape, and selects one from a text prompt ("red block", "the bowl on the left",
+  "the largest object") or from a pixel. Several cameras (e.g. agentview + wrist) are fused.
+* **Grasps** - parallel-jaw candidates on a cluster (top-down slices and antipodal normal
+  pairs), checked against the gripper stroke, the fingers' and hand's sweep through the cloud
+  and the support plane, scored and returned as TCP poses ``[x, y, z, ax, ay, az]`` in the base
+  frame with a pre-grasp pose, ready for ``post_actions`` ee_pose waypoints.
+
+Conventions (those of `robo`): metres, radians, base frame +x forward, +y left, +z up; camera
+optical frame x right, y down, z forward; ``camera_extrinsics`` are ``base_from_camera``.
+The TCP frame of the Franka Hand: z is the approach direction (out of the fingertips), y is the
+axis the fingers move along, x = y cross z. Pointing straight down at yaw 0 is ``[pi, 0, 0]``.
+
+Typical use inside a stage program::
+
+    from robo import get_state
+    import robo_perception as rp
+    state = get_state(["agentview", "wrist"], raw=True)
+    scene = rp.segment_scene(state)
+    block = rp.select(scene, "red block")
+    grasps = rp.propose_grasps(block, scene, reference_pose=state["ee_pose"])
+    best = grasps[0]   # best.pregrasp, best.pose, best.width, best.gripper_open
+
+The package has one module per concept; every name is re-exported here, so ``rp.X`` and
+``from robo_perception import X`` work as they did when this was a single file:
+
+* ``hand`` - the gripper model (HandGeometry, FRANKA_HAND, opening <-> gripper command);
+* ``transforms`` - frame conversions, point transforms, pose interpolation and waypoints;
+* ``camera`` - CameraView, views from ``get_state``, back-projection and projection;
+* ``geometry`` - Plane, OrientedBox, hulls and rectangles, RANSAC planes, normals;
+* ``voxels`` - voxel grids, down-sampling, connected components, Euclidean clustering;
+* ``naming`` - colour and shape names;
+* ``segmentation`` - ObjectCluster, SceneSegmentation, segment_scene;
+* ``prompts`` - parse_prompt, rank_objects, select, segment;
+* ``grasps`` - Grasp, grasp_rotation, propose_grasps.
+"""
+
+from __future__ import annotations
+
+from .hand import FRANKA_HAND, GRIPPER_MAX_WIDTH, HandGeometry, gripper_to_width, width_to_gripper
+from .transforms import (axis_angle_to_matrix, base_to_camera, camera_to_base, interpolate_poses,
+                         invert_transform, matrix_to_axis_angle, matrix_to_pose, pose_to_matrix,
+                         rotation_distance, transform_points, waypoints)
+from .camera import CameraView, depth_to_points, pixel_to_point, project_points, views_from_state
+from .voxels import voxel_downsample
+from .geometry import (OrientedBox, Plane, convex_hull_2d, estimate_normals, fit_plane_ransac, min_area_rect,
+                       obb_in_plane, obb_pca)
+from .naming import COLOR_NAMES, SHAPE_NAMES, color_name, shape_name
+from .segmentation import ObjectCluster, SceneSegmentation, segment_scene
+from .prompts import parse_prompt, rank_objects, segment, select
+from .grasps import Grasp, grasp_rotation, propose_grasps
+
+__all__ = [
+    # constants
+    "GRIPPER_MAX_WIDTH", "HandGeometry", "FRANKA_HAND",
+    # frames
+    "axis_angle_to_matrix", "matrix_to_axis_angle", "pose_to_matrix", "matrix_to_pose",
+    "invert_transform", "transform_points", "base_to_camera", "camera_to_base",
+    "rotation_distance", "interpolate_poses", "waypoints", "width_to_gripper", "gripper_to_width",
+    # camera geometry
+    "CameraView", "views_from_state", "pixel_to_point", "depth_to_points", "project_points",
+    # shapes
+    "OrientedBox", "Plane", "obb_pca", "obb_in_plane", "convex_hull_2d", "min_area_rect",
+    "fit_plane_ransac", "voxel_downsample", "estimate_normals",
+    # segmentation
+    "ObjectCluster", "SceneSegmentation", "segment_scene", "select", "rank_objects", "segment",
+    "color_name", "shape_name", "parse_prompt", "COLOR_NAMES", "SHAPE_NAMES",
+    # grasps
+    "Grasp", "propose_grasps", "grasp_rotation",
+]
+
+# Private helpers stay in their modules (``from robo_perception.voxels import _euclidean_groups``).

@@ -1,0 +1,99 @@
+//! `r2g bench agent`: what the agent host costs per decision, beside the same stage programs
+//! run bare.
+
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+use agent_host::episode::EpisodeResult;
+use agent_host::session::{self, EpisodeOpts};
+use anyhow::bail;
+use ipc_schema::Mode;
+use runtime::launch::{self, Instance, UpOptions};
+use serde_json::{json, Value};
+
+/// `r2g bench agent`: host overhead per decision of the loop (scripted endpoint on loopback, so
+/// model time is tiny and measured), beside the same stage programs run bare (plain Python and
+/// the real `robo`, no sandbox, no LLM, no records) on a fresh instance in the same run.
+pub fn run(episodes: u32) -> anyhow::Result<Value> {
+    let root = session::root();
+    let gym = "pick_block_plate";
+    let dir = std::env::temp_dir().join(format!("r2g-bench-agent-{}", std::process::id()));
+    let mut rows = Vec::new();
+    for i in 0..episodes.max(1) {
+        let o = EpisodeOpts {
+            gym: gym.into(),
+            llm: "scripted".into(),
+            provider: if i % 2 == 0 { "openai" } else { "anthropic" }.into(),
+            max_decisions: 50,
+            control_steps: 600,
+            wall: false,
+            out: Some(dir.join(format!("episode-{i}"))),
+            robot_config: None,
+            wall_s: 120.0,
+            memory: Some(dir.join("memory")),
+        };
+        let r = session::episode(&o)?;
+        if !r.success {
+            bail!("benchmark episode {i} did not succeed: {}", r.stop_reason);
+        }
+        rows.push(r);
+    }
+    // Baseline: the same programs, bare.
+    let programs = session::scripted_programs(&root, gym)?;
+    let scratch = dir.join("bare");
+    std::fs::create_dir_all(&scratch)?;
+    let instance = format!("benchagent{}", std::process::id());
+    let opts = UpOptions {
+        scene: launch::resolve_scene(gym)?,
+        instance: instance.clone(),
+        mode: Mode::Lockstep,
+        render_hz: 10.0,
+        control_args: Vec::new(),
+        sim_args: Vec::new(),
+        robot_config: Some(launch::default_robot_config()),
+        ready_timeout: Duration::from_secs(60),
+    };
+    let mut inst = Instance::up(&opts)?;
+    let python = root.join(".venv/bin/python");
+    let run_bare = |code: &str| -> anyhow::Result<f64> {
+        let t0 = std::time::Instant::now();
+        let st = Command::new(&python)
+            .args(["-c", code])
+            .current_dir(&scratch)
+            .env("R2G_INSTANCE", &instance)
+            .stdout(Stdio::null())
+            .status()?;
+        if !st.success() {
+            bail!("a bare stage program failed: {st}");
+        }
+        Ok(t0.elapsed().as_secs_f64())
+    };
+    let bare = run_bare("import robo; assert robo.reset() == 1")
+        .and_then(|_| programs.iter().map(|p| run_bare(p)).sum::<anyhow::Result<f64>>());
+    inst.stop();
+    let bare_s = bare?;
+    let _ = std::fs::remove_dir_all(&dir);
+
+    let mean = |f: &dyn Fn(&EpisodeResult) -> f64| rows.iter().map(f).sum::<f64>() / rows.len() as f64;
+    let per_decision = mean(&|r| (r.wall_s - r.model_s) / f64::from(r.responses.max(1)) * 1e3);
+    let host = mean(&|r| r.overhead_s / f64::from(r.responses.max(1)) * 1e3);
+    let exec = mean(&|r| r.exec_s);
+    let figures = json!({
+        "episodes": rows.len(),
+        "responses": mean(&|r| f64::from(r.responses)),
+        "overhead_per_decision_ms": per_decision,
+        "host_only_per_decision_ms": host,
+        "model_per_decision_ms": mean(&|r| r.model_s / f64::from(r.responses.max(1)) * 1e3),
+        "sandboxed_programs_s": exec,
+        "bare_programs_s": bare_s,
+        "sandbox_over_bare": exec / bare_s,
+        "wall_s": mean(&|r| r.wall_s),
+    });
+    println!("agent loop on {gym}, scripted endpoint on loopback, lockstep ({} episodes)", rows.len());
+    println!("{:<44} {:>10}", "per decision: everything but model time", format!("{per_decision:.1} ms"));
+    println!("{:<44} {:>10}", "per decision: host only (no model, no program)", format!("{host:.1} ms"));
+    println!("{:<44} {:>10}", "stage programs in the sandbox (per episode)", format!("{exec:.2} s"));
+    println!("{:<44} {:>10}", "same programs bare (python + robo)", format!("{bare_s:.2} s"));
+    println!("{figures}");
+    Ok(figures)
+}
