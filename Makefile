@@ -8,14 +8,14 @@ export MUJOCO_GL := egl
 # test binaries (`make test` builds each workspace crate once per profile, plus the cfg(test)
 # builds of the crates themselves). Two things used to split them:
 # - pyo3's build script reruns, and pyo3 and `robo` compile again, whenever PYO3_PYTHON,
-#   VIRTUAL_ENV, PYO3_ENVIRONMENT_SIGNATURE or PYO3_BUILD_EXTENSION_MODULE differ from the last
-#   build; maturin sets them for its build, so every cargo command here sees the same values;
+#   PYO3_ENVIRONMENT_SIGNATURE or PYO3_BUILD_EXTENSION_MODULE differ from the last build;
+#   maturin sets them for its build, so every cargo command here sees the same values (a
+#   plain `cargo build` outside make does not, and costs the next make a pyo3 rebuild);
 # - Cargo resolves features per invocation: `maturin develop` builds `robo` alone and
 #   `cargo test` adds dev-dependencies. robo/Cargo.toml pins the workspace's features
 #   (tests/tests/build.rs checks the graphs agree).
 # The test binaries link no libpython either way: pyo3 finds no shared libpython here and
 # `robo`'s own tests never call into Python.
-export VIRTUAL_ENV := $(CURDIR)/$(VENV)
 export PYO3_PYTHON := $(CURDIR)/$(VENV)/bin/python
 export PYO3_BUILD_EXTENSION_MODULE := 1
 export PYO3_ENVIRONMENT_SIGNATURE = $(shell $(PYO3_PYTHON) -c 'import sys; v = sys.version_info; \
@@ -44,7 +44,7 @@ build: venv
 	cargo build --release --workspace --locked
 
 robo: build
-	PATH=$(CURDIR)/$(VENV)/bin:$$PATH $(VENV)/bin/maturin develop --release --locked -m robo/Cargo.toml
+	VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH $(VENV)/bin/maturin develop --release --locked -m robo/Cargo.toml
 
 bench-tick: build
 	target/release/r2g bench tick --seconds 10

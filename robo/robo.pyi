@@ -79,7 +79,8 @@ class _StateBase(TypedDict):
     joint: list[float]
     """7 measured joint positions, rad."""
     ee_pose: list[float]
-    """Measured TCP in the robot base frame: x, y, z (m), then axis-angle ax, ay, az (rad)."""
+    """Measured TCP in the robot base frame: x, y, z (m), then axis-angle ax, ay, az (rad); of the
+    equivalent axis-angle vectors, the one nearest the previous report (never a flip)."""
     gripper: list[float]
     """One measured value: -1 open ... +1 closed. Short of +1 after closing: something is held."""
     joint_velocity: list[float]
@@ -161,8 +162,9 @@ def get_state(cameras: CameraSelection = None, raw: bool = False) -> Union[State
 def post_actions(cmd: Actions) -> int:
     """Executes a chunk of absolute targets and blocks until it has executed or failed.
 
-    Returns 1 when executed (the motion ran; not proof the task step worked) and 0 when rejected
-    or failed; the reason is in get_state([])["control_feedback"]. Every waypoint step (and the
+    Returns 1 when executed (the measured state reached the last waypoint: joints within 0.005
+    rad, or the TCP within 5 mm and 0.02 rad; not proof the task step worked) and 0 when rejected
+    or failed (`not reached:` when the arm ended short of the last waypoint); the reason is in get_state([])["control_feedback"]. Every waypoint step (and the
     step from the measured pose to the first one) must stay within max_joint_step_rad (joint) or
     max_tcp_step_m / max_tcp_step_rad (ee_pose). Nothing is clipped into acceptance; a rejected
     chunk moved nothing.

@@ -231,59 +231,6 @@ impl Recorder {
     }
 }
 
-/// Most memory records one episode may add, and the largest one, bytes.
-const MAX_RECORDS: usize = 50;
-const MAX_RECORD_BYTES: u64 = 64 * 1024;
-
-/// Copies new memory records the worker wrote under `scratch/memory/` to the memory folder,
-/// never overwriting one that exists (records are append-only). Runs while no worker is alive;
-/// follows no links and reads only regular files of a bounded size.
-fn collect_memory(scratch: &Path, memory_dir: &Path, taken: &mut usize) -> Vec<String> {
-    use std::io::Read as _;
-    use std::os::unix::fs::OpenOptionsExt as _;
-    let mut added = Vec::new();
-    let dir = scratch.join("memory");
-    if !std::fs::symlink_metadata(&dir).is_ok_and(|m| m.is_dir()) {
-        return added;
-    }
-    let Ok(rd) = std::fs::read_dir(&dir) else { return added };
-    for e in rd.flatten() {
-        if *taken >= MAX_RECORDS {
-            break;
-        }
-        let name = e.file_name().to_string_lossy().into_owned();
-        let ok_name = name.len() < 120
-            && !name.starts_with('.')
-            && name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
-            && (name.ends_with(".json") || name.ends_with(".md"));
-        let dst = memory_dir.join(&name);
-        if !ok_name || dst.exists() {
-            continue;
-        }
-        let Ok(mut f) =
-            std::fs::OpenOptions::new().read(true).custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK).open(e.path())
-        else {
-            continue;
-        };
-        if !f.metadata().is_ok_and(|m| m.is_file() && m.len() <= MAX_RECORD_BYTES) {
-            continue;
-        }
-        let mut body = Vec::new();
-        if (&mut f).take(MAX_RECORD_BYTES).read_to_end(&mut body).is_err() {
-            continue;
-        }
-        let written = std::fs::create_dir_all(memory_dir).and_then(|_| {
-            let mut out = std::fs::OpenOptions::new().write(true).create_new(true).open(&dst)?;
-            out.write_all(&body)
-        });
-        if written.is_ok() {
-            *taken += 1;
-            added.push(name);
-        }
-    }
-    added
-}
-
 /// Keeps images only in the newest `keep` user messages (long episodes would otherwise pass
 /// the endpoints' image and size limits); older ones become a short note.
 fn prune_images(messages: &mut [Message], keep: usize) {
@@ -329,12 +276,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
     }
     std::fs::create_dir_all(&scratch)?;
     let mut records_taken = 0usize;
-    if let Ok(rd) = std::fs::read_dir(&cfg.memory_dir) {
-        std::fs::create_dir_all(scratch.join("memory"))?;
-        for e in rd.flatten().filter(|e| e.file_type().is_ok_and(|t| t.is_file())) {
-            let _ = std::fs::copy(e.path(), scratch.join("memory").join(e.file_name()));
-        }
-    }
+    crate::memory::seed(&scratch, &cfg.memory_dir)?;
     let reset = worker.host_cmd(json!({"cmd": "reset"}))?;
     if reset["ok"] != 1 {
         bail!("reset before the episode failed: {}", reset["feedback"]);
@@ -425,7 +367,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
                     rec.file(&format!("{dir}/{name}.png"), &png)?;
                     attach.push(Part::Png(png));
                 }
-                let memory = collect_memory(&scratch, &cfg.memory_dir, &mut records_taken);
+                let memory = crate::memory::collect(&scratch, &cfg.memory_dir, &mut records_taken);
                 record["exec"] = serde_json::to_value(&r)?;
                 record["state_after"] = after["state"].clone();
                 record["memory_added"] = json!(memory);

@@ -2,6 +2,7 @@
 
 pub mod episode;
 pub mod llm;
+pub mod memory;
 pub mod sandbox;
 pub mod session;
 pub mod viewer;

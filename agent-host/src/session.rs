@@ -159,18 +159,24 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
     Ok(result)
 }
 
-pub fn batch(o: &EpisodeOpts, episodes: u32) -> anyhow::Result<Value> {
+/// Runs `episodes` episodes one after the other (each in `<out>/episode-NNN`), telling
+/// `on_episode` how each went, and returns the metrics: success rate, responses, tokens and the
+/// wall-time split, with every episode's result (also written to `<out>/batch.json`).
+pub fn batch(
+    o: &EpisodeOpts,
+    episodes: u32,
+    mut on_episode: impl FnMut(u32, &anyhow::Result<EpisodeResult>),
+) -> anyhow::Result<Value> {
     let root = root();
     let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
     let dir = o.out.clone().unwrap_or_else(|| root.join("runs").join("batches").join(format!("{}-{stamp}", o.gym)));
     let mut rows = Vec::new();
     for i in 0..episodes {
         let e = EpisodeOpts { out: Some(dir.join(format!("episode-{i:03}"))), ..o.clone() };
-        match episode(&e) {
-            Ok(r) => {
-                eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses);
-                rows.push(serde_json::to_value(&r)?)
-            }
+        let r = episode(&e);
+        on_episode(i, &r);
+        match r {
+            Ok(r) => rows.push(serde_json::to_value(&r)?),
             Err(e) => rows.push(json!({"error": format!("{e:#}"), "success": false})),
         }
     }
@@ -215,6 +221,10 @@ pub struct ExecOpts {
     pub observe_only: bool,
     /// Scratch folder (default: a new one under runs/exec/).
     pub scratch: Option<PathBuf>,
+    /// Memory folder: its records are copied into the scratch folder's `memory/` before the
+    /// program runs, and the program's new records appended to it afterwards, as in an
+    /// episode. `None`: no memory (the scratch folder has no `memory/`).
+    pub memory: Option<PathBuf>,
 }
 
 /// Runs the program in `file` once in a confined worker; the result (stdout, stderr, exit,
@@ -228,16 +238,23 @@ pub fn exec(file: &Path, o: &ExecOpts) -> anyhow::Result<Value> {
     let limits = crate::worker::Limits { wall_s: o.wall_s, cpu_s: o.cpu_s, ..Default::default() };
     let cfg = crate::worker::WorkerConfig {
         instance: o.instance.clone(),
-        scratch,
+        scratch: scratch.clone(),
         log_dir: run_dir.join("logs"),
         root,
         limits,
     };
+    if let Some(dir) = &o.memory {
+        std::fs::create_dir_all(&scratch).with_context(|| format!("creating {}", scratch.display()))?;
+        crate::memory::seed(&scratch, dir)?;
+    }
     let mut worker = crate::worker::Worker::new(cfg);
     let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "program.py".into());
     let budget = crate::worker::Budget { control_steps: o.budget, observe_only: o.observe_only };
     let r = worker.run(&code, &name, budget)?;
     let mut v = serde_json::to_value(&r)?;
     v["sandbox"] = serde_json::to_value(&worker.enforced)?;
+    if let Some(dir) = &o.memory {
+        v["memory_added"] = json!(crate::memory::collect(&scratch, dir, &mut 0));
+    }
     Ok(v)
 }

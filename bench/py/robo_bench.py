@@ -124,11 +124,12 @@ def main() -> int:
     path, pfile = os.path.join(tmp, "sock"), os.path.join(tmp, "payloads.pkl")
     with open(pfile, "wb") as f:
         pickle.dump(payloads, f, protocol=5)
-    server = subprocess.Popen([sys.executable, __file__, "--serve", path, pfile])
+    # The server must never hold our stdout (the caller reads it to the end) nor outlive us.
+    server = subprocess.Popen([sys.executable, __file__, "--serve", path, pfile],
+                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
     try:
-        for _ in range(500):
-            if os.path.exists(path):
-                break
+        deadline = time.monotonic() + 60  # a loaded 2-core machine can take seconds to start it
+        while not os.path.exists(path) and time.monotonic() < deadline and server.poll() is None:
             time.sleep(0.01)
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         sock.connect(path)
@@ -146,7 +147,11 @@ def main() -> int:
         sock.sendall(b"Q")
         sock.close()
     finally:
-        server.wait(timeout=10)
+        try:
+            server.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait()
         for p in (path, pfile):
             if os.path.exists(p):
                 os.remove(p)

@@ -76,6 +76,11 @@ enum Cmd {
         /// Scratch folder (default: a new one under runs/exec/).
         #[arg(long)]
         scratch: Option<std::path::PathBuf>,
+        /// Memory folder (e.g. robot-skill/memory): its records are copied into the scratch
+        /// folder's memory/ first, and the program's new records appended to it afterwards.
+        /// Without it the program gets no memory/.
+        #[arg(long)]
+        memory: Option<std::path::PathBuf>,
     },
     /// One episode of the stage-code agent loop on a gym this command starts; ends with one JSON
     /// line (success, responses, tokens, wall time split, run_dir).
@@ -346,7 +351,11 @@ fn main() {
             println!("{}", serde_json::to_string(&r)?);
             Ok(if r.success { 0 } else { 1 })
         }),
-        Cmd::Batch { episodes, opts } => session::batch(&opts.into(), episodes).map(|v| {
+        Cmd::Batch { episodes, opts } => session::batch(&opts.into(), episodes, |i, r| match r {
+            Ok(r) => eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses),
+            Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),
+        })
+        .map(|v| {
             println!("{v}");
             0
         }),
@@ -354,8 +363,8 @@ fn main() {
             println!("{}", p.display());
             0
         }),
-        Cmd::Exec { file, instance, budget, wall_s, cpu_s, observe_only, scratch } => {
-            let o = session::ExecOpts { instance, budget, wall_s, cpu_s, observe_only, scratch };
+        Cmd::Exec { file, instance, budget, wall_s, cpu_s, observe_only, scratch, memory } => {
+            let o = session::ExecOpts { instance, budget, wall_s, cpu_s, observe_only, scratch, memory };
             session::exec(&file, &o).map(|v| {
                 println!("{v}");
                 0
@@ -461,11 +470,13 @@ fn up(
     std::io::stdout().flush()?;
     match inst.supervise()? {
         None => {
+            inst.stop();
             eprintln!("r2g: instance '{instance}' stopped");
             Ok(0)
         }
         Some(what) => {
             eprintln!("r2g: {what}; stopping instance '{instance}'");
+            inst.stop();
             Ok(1)
         }
     }

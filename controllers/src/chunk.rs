@@ -16,6 +16,8 @@ use crate::N;
 
 /// Largest chunk the plan holds.
 pub const MAX_WAYPOINTS: usize = 256;
+/// A joint of an IK solution counts as at its limit within this distance of its bound, rad.
+const AT_LIMIT_RAD: f64 = 0.01;
 /// Spacing of the IK and safety samples along an ee_pose chunk's TCP path, m.
 pub const PATH_SPACING_M: f64 = 0.01;
 /// Rotation counts as this many metres per radian of path length.
@@ -238,11 +240,16 @@ impl ChunkPlan {
                 let sol = match ik.solve(&sample, &q) {
                     Ok(sol) if sol.ok => sol,
                     Ok(sol) => {
+                        let (lo, hi) = ik.bounds();
+                        let at_limits = (0..N)
+                            .filter(|&j| sol.q[j] - lo[j] < AT_LIMIT_RAD || hi[j] - sol.q[j] < AT_LIMIT_RAD)
+                            .fold(0u8, |m, j| m | (1 << j));
                         return Err(Rejection::Unreachable {
                             waypoint: w,
                             position_error_m: sol.position_error_m,
                             rotation_error_rad: sol.rotation_error_rad,
-                        })
+                            at_limits,
+                        });
                     }
                     Err(_) => return Err(Rejection::NotFinite { waypoint: w, index: 0 }),
                 };
@@ -386,6 +393,11 @@ impl ChunkPlan {
 
     pub fn last(&self) -> Waypoint {
         self.waypoints[self.len - 1]
+    }
+
+    /// ee_pose chunks: the last waypoint's TCP pose (base frame); `None` for joint chunks.
+    pub fn last_pose(&self) -> Option<Isometry3<f64>> {
+        (self.cartesian && self.len > 0).then(|| self.poses[self.len])
     }
 
     /// The reference at `t_s` seconds after the chunk started: linear between waypoints.

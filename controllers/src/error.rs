@@ -108,6 +108,8 @@ pub enum Rejection {
         waypoint: usize,
         position_error_m: f64,
         rotation_error_rad: f64,
+        /// Bit j set: joint j+1 of the best solution found is at its limit.
+        at_limits: u8,
     },
     /// The waypoint, or the path to it, collides or leaves the workspace.
     Unsafe {
@@ -196,12 +198,18 @@ impl fmt::Display for Rejection {
                 write!(f, "this episode uses \"{locked}\" control; \"{requested}\" is rejected until reset()")
             }
             Self::Busy => write!(f, "another client's request is executing: wait for it to finish"),
-            Self::Unreachable { waypoint, position_error_m, rotation_error_rad } => write!(
-                f,
-                "actions[{waypoint}] is not reachable within the joint limits (best found: {:.1} mm, {:.2} deg away)",
-                position_error_m * 1e3,
-                rotation_error_rad.to_degrees()
-            ),
+            Self::Unreachable { waypoint, position_error_m, rotation_error_rad, at_limits } => {
+                write!(
+                    f,
+                    "actions[{waypoint}] is not reachable within the joint limits (best found: {:.1} mm, {:.2} deg away",
+                    position_error_m * 1e3,
+                    rotation_error_rad.to_degrees()
+                )?;
+                for (i, j) in (0..8).filter(|j| at_limits & (1 << j) != 0).enumerate() {
+                    write!(f, "{}{}", if i == 0 { "; joints at their limits: " } else { ", " }, j + 1)?;
+                }
+                write!(f, ")")
+            }
             Self::Unsafe { waypoint, detail } => write!(f, "actions[{waypoint}] is refused: {detail}"),
             Self::Halting => write!(f, "the arm is braking after a stop (safety check or contact reflex): send the chunk again once it rests"),
             Self::UnknownRequestKind(k) => write!(f, "unknown request kind {k}"),

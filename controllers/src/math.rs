@@ -78,6 +78,29 @@ pub fn axis_angle(q: Quat) -> [f64; 3] {
     [q[0] / s * angle, q[1] / s * angle, q[2] / s * angle]
 }
 
+/// The axis-angle vector of `q` nearest `near`: the same rotation, its angle taken as θ, θ − 2π
+/// or θ + 2π along the same axis. Reported poses stay continuous this way: a rotation of π about
+/// x does not jump between [π, 0, 0] and [−π, 0, 0] from one report to the next.
+pub fn axis_angle_near(q: Quat, near: [f64; 3]) -> [f64; 3] {
+    let r = axis_angle(q);
+    let angle = (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt();
+    if angle < 1e-12 {
+        return r;
+    }
+    let mut best = r;
+    let mut best_d = f64::INFINITY;
+    for k in [-1.0, 0.0, 1.0] {
+        let scale = (angle + 2.0 * std::f64::consts::PI * k) / angle;
+        let c = [r[0] * scale, r[1] * scale, r[2] * scale];
+        let d = (0..3).map(|i| (c[i] - near[i]).powi(2)).sum::<f64>();
+        if d < best_d {
+            best_d = d;
+            best = c;
+        }
+    }
+    best
+}
+
 /// Row-major 4×4 homogeneous matrix of a pose.
 pub fn homogeneous(p: [f64; 3], q: Quat) -> [[f64; 4]; 4] {
     let x = rotate(q, [1.0, 0.0, 0.0]);
@@ -123,5 +146,23 @@ mod tests {
         let (p, q) = compose(a, inverse(a));
         assert!(close(&p, &[0.0; 3]));
         assert!(close(&q, &[0.0, 0.0, 0.0, 1.0]) || close(&q, &[0.0, 0.0, 0.0, -1.0]));
+    }
+
+    #[test]
+    fn axis_angle_near_keeps_reports_continuous() {
+        let pi = std::f64::consts::PI;
+        // π about x, with w a hair on either side of zero: the same rotation both times.
+        let a = [1.0, 0.0, 0.0, 1e-17];
+        let b = [-1.0, 0.0, 0.0, 1e-17];
+        let ra = axis_angle_near(a, [pi, 0.0, 0.0]);
+        let rb = axis_angle_near(b, [pi, 0.0, 0.0]);
+        assert!(close(&ra, &[pi, 0.0, 0.0]) && close(&rb, &[pi, 0.0, 0.0]), "{ra:?} {rb:?}");
+        // Past π the report keeps growing instead of flipping sign.
+        let past = normalize([(0.5 * (pi + 0.1)).sin(), 0.0, 0.0, (0.5 * (pi + 0.1)).cos()]);
+        let r = axis_angle_near(past, [pi, 0.0, 0.0]);
+        assert!(close(&r, &[pi + 0.1, 0.0, 0.0]), "{r:?}");
+        // Small rotations are left alone.
+        let small = normalize([0.0, 0.0, (0.05f64).sin(), (0.05f64).cos()]);
+        assert!(close(&axis_angle_near(small, [0.0; 3]), &axis_angle(small)));
     }
 }

@@ -10,7 +10,7 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 /// Bumped whenever any payload below changes layout or meaning. Every service carries it as
 /// the attribute `r2g.schema`; a process of another build is refused when it connects.
-pub const SCHEMA_VERSION: u32 = 2;
+pub const SCHEMA_VERSION: u32 = 3;
 /// Attribute key that carries [`SCHEMA_VERSION`] on every service.
 pub const SCHEMA_ATTRIBUTE: &str = "r2g.schema";
 
@@ -245,7 +245,7 @@ pub enum Mode {
 /// runtime → agents, once per tick (wall) or per step (lockstep): the agent-facing robot state.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
-#[type_name("r2g.RobotState.v2")]
+#[type_name("r2g.RobotState.v3")]
 pub struct RobotState {
     pub seq: u64,
     /// Simulated (or robot) time of the underlying measurement, s.
@@ -257,6 +257,9 @@ pub struct RobotState {
     /// −1 open … +1 closed.
     pub gripper: f64,
     pub base_from_tcp: Pose,
+    /// The TCP rotation as an axis-angle vector (rad), continuous from one report to the next:
+    /// of the vectors that describe the rotation, the one nearest the previous report.
+    pub tcp_rotvec: [f64; 3],
     /// The control type locked for this episode (0: none yet).
     pub control_type: u32,
     /// A [`Mode`] as u32.
@@ -702,12 +705,13 @@ mod tests {
     fn payloads_keep_their_sizes() {
         // A layout change must bump SCHEMA_VERSION; this test makes the change visible.
         // Schema 2 added the external force (SimState, RobotState), the fault flag, the reply's
-        // latency stamps and the profile limits.
+        // latency stamps and the profile limits; schema 3 the continuous TCP axis-angle vector
+        // (RobotState).
         assert_eq!(core::mem::size_of::<SimState>(), 240);
         assert_eq!(core::mem::size_of::<Request>(), 40 + 8 * WAYPOINT_LEN * MAX_CHUNK);
-        assert_eq!(core::mem::size_of::<RobotState>(), 256);
+        assert_eq!(core::mem::size_of::<RobotState>(), 280);
         assert_eq!(core::mem::size_of::<Reply>(), 48 + REASON_LEN);
-        assert_eq!(SCHEMA_VERSION, 2);
+        assert_eq!(SCHEMA_VERSION, 3);
     }
 }
 

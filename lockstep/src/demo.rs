@@ -63,3 +63,26 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
         format!("renaming {} to {}", tmp.display(), path.display())
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_written_demonstration_reads_back_and_bad_rows_name_their_line() {
+        let dir = std::env::temp_dir().join(format!("r2g-demo-unit-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("demo.csv");
+        let rows = vec![[0.1, -0.2, 0.3, -2.0, 0.0, 1.5, 0.7, -1.0], [0.2, -0.2, 0.3, -2.1, 0.0, 1.6, 0.7, 1.0]];
+        write_demo(&path, &rows).expect("write");
+        assert_eq!(read_demo(&path).expect("read"), rows);
+        // No temporary file is left beside it.
+        assert_eq!(std::fs::read_dir(&dir).expect("list").count(), 1);
+        std::fs::write(&path, "q1,q2,q3,q4,q5,q6,q7,gripper\n0,0,0,0,0,0,0,0\n0,0,0,NaN,0,0,0,0\n").expect("write");
+        let e = read_demo(&path).expect_err("NaN").to_string();
+        assert!(e.contains("line 3") && e.contains("8 finite numbers"), "{e}");
+        std::fs::write(&path, "0,0,0\n").expect("write");
+        assert!(read_demo(&path).expect_err("short").to_string().contains("got 3"));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

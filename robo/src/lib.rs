@@ -216,7 +216,8 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>, raw: boo
     let out = PyDict::new(py);
     out.set_item("joint", state.q_rad)?;
     let tcp = state.base_from_tcp;
-    let aa = math::axis_angle(tcp.quat_xyzw);
+    // The runtime's continuous axis-angle vector (nearest its previous report), never a flip.
+    let aa = state.tcp_rotvec;
     out.set_item("ee_pose", [tcp.position_m[0], tcp.position_m[1], tcp.position_m[2], aa[0], aa[1], aa[2]])?;
     out.set_item("gripper", [state.gripper])?;
     out.set_item("timestamp", state.timestamp_s)?;

@@ -17,6 +17,14 @@ use crate::robot_config::Reflexes;
 /// Measured joints must come this close to the final target for a chunk to count as settled.
 const SETTLE_TOL_RAD: f64 = 0.002;
 const SETTLE_VEL_RAD_S: f64 = 0.02;
+/// A chunk counts as executed only when the measured state ends this close to its last
+/// waypoint (documented in robot-skill/api/README.md): joints for joint chunks, ...
+pub const REACH_TOL_RAD: f64 = 0.005;
+/// ... the TCP's position and (geodesic) rotation for ee_pose chunks.
+pub const REACH_TOL_M: f64 = 0.005;
+pub const REACH_TOL_TCP_RAD: f64 = 0.02;
+/// A joint counts as at its limit within this distance of it, rad.
+const AT_LIMIT_RAD: f64 = 0.01;
 /// Longest wait for settling after the command has arrived, s.
 const SETTLE_TIMEOUT_S: f64 = 1.5;
 /// How long past the planned duration the command may take to reach the last waypoint, s.
@@ -75,6 +83,8 @@ pub struct Controller {
     braking_before: u64,
     /// Collision, obstacle and workspace checks (none: joint limits only).
     safety: Option<SafetyChecks>,
+    /// The last reported TCP axis-angle vector (continuity of [`Self::robot_state`]).
+    rotvec: Option<[f64; 3]>,
     /// Checks ee_pose waypoints at acceptance, with a bounded effort per waypoint.
     ik: IkSolver,
     diffik: DiffIkConfig,
@@ -132,6 +142,7 @@ impl Controller {
             last_rejection: None,
             braking_before: 0,
             safety: None,
+            rotvec: None,
             ik,
             diffik: DiffIkConfig::default(),
             q_ref: [0.0; N_JOINTS],
@@ -337,6 +348,53 @@ impl Controller {
     }
 
     /// One tick: the command to send and, when a request just finished, its reply.
+    /// The final reply of a chunk whose command has come to rest: `executed` only when the
+    /// measured state is within the reach tolerance of the last waypoint (the TCP pose for
+    /// ee_pose chunks, the joints for joint chunks), else `failed` with the measured error and
+    /// the joints at their limits. `err`/`worst`: the largest joint distance from the last
+    /// target and its joint. Allocation-free (tick path).
+    fn reached(&self, id: u64, client: u64, q: &[f64; N_JOINTS], err: f64, worst: usize) -> Reply {
+        let mut at_limit = [0u8; N_JOINTS];
+        let mut n_at = 0;
+        for (j, lim) in self.robot.joints.iter().enumerate() {
+            if q[j] - lim.q_min_rad < AT_LIMIT_RAD || lim.q_max_rad - q[j] < AT_LIMIT_RAD {
+                at_limit[n_at] = (j + 1) as u8;
+                n_at += 1;
+            }
+        }
+        let limits = JointList(&at_limit[..n_at]);
+        if let Some(goal) = self.plan.last_pose() {
+            let tcp = self.robot.kin.fk(q, self.robot.kin.tcp);
+            let dp = (tcp.translation.vector - goal.translation.vector).norm();
+            let dr = tcp.rotation.angle_to(&goal.rotation);
+            if dp > REACH_TOL_M || dr > REACH_TOL_TCP_RAD {
+                return Reply::formatted(
+                    id,
+                    client,
+                    Status::Failed,
+                    format_args!(
+                        "not reached: the TCP stopped {:.1} mm and {dr:.3} rad from the last waypoint \
+                         (tolerance {:.0} mm, {REACH_TOL_TCP_RAD} rad){limits}; the arm holds there",
+                        dp * 1e3,
+                        REACH_TOL_M * 1e3
+                    ),
+                );
+            }
+        } else if err > REACH_TOL_RAD {
+            return Reply::formatted(
+                id,
+                client,
+                Status::Failed,
+                format_args!(
+                    "not reached: the arm stopped {err:.4} rad from the last waypoint at joint {} \
+                     (tolerance {REACH_TOL_RAD} rad; blocked by contact?){limits}; the arm holds there",
+                    worst + 1
+                ),
+            );
+        }
+        Reply::new(id, client, Status::Executed, "executed")
+    }
+
     pub fn tick(&mut self, state: &SimState) -> (JointCommand, Option<Reply>) {
         let mut reply = self.complete_reset(state);
         self.ensure_tracker(state);
@@ -465,16 +523,12 @@ impl Controller {
                     let finger_done = (state.finger_m - tracker.finger_m).abs() < 1e-3 || self.finger_still_ticks > 50;
                     let timed_out = a.t_s - since_s > SETTLE_TIMEOUT_S;
                     if (err < SETTLE_TOL_RAD && !moving && finger_done) || timed_out {
-                        let mut r = if timed_out {
-                            let why = format_args!(
-                                "executed; the arm stopped {err:.4} rad from the last target at joint {} (blocked by contact?)",
-                                worst + 1
-                            );
-                            Reply::formatted(a.id, a.client, Status::Executed, why)
+                        let mut r = self.reached(a.id, a.client, &state.q_rad, err, worst);
+                        r.executed = if r.status == Status::Executed as u32 {
+                            self.plan.len() as u32
                         } else {
-                            Reply::new(a.id, a.client, Status::Executed, "executed")
+                            self.reference.reached as u32
                         };
-                        r.executed = self.plan.len() as u32;
                         r.final_joint_error_rad = err;
                         reply = Some(r);
                         self.active = None;
@@ -577,8 +631,15 @@ impl Controller {
         self.braking_before + self.tracker.map_or(0, |t| t.braking_ticks)
     }
 
-    /// The agent-facing state for the latest measurement.
-    pub fn robot_state(&self, state: &SimState, seq: u64, mode: u32) -> RobotState {
+    /// The agent-facing state for the latest measurement. The TCP's axis-angle vector is the one
+    /// nearest the previous report, so reports never flip between equivalent vectors.
+    pub fn robot_state(&mut self, state: &SimState, seq: u64, mode: u32) -> RobotState {
+        let q = state.base_from_tcp.quat_xyzw;
+        let tcp_rotvec = match self.rotvec {
+            Some(prev) => controllers::math::axis_angle_near(q, prev),
+            None => controllers::math::axis_angle(q),
+        };
+        self.rotvec = Some(tcp_rotvec);
         RobotState {
             seq,
             timestamp_s: state.sim_time_s,
@@ -587,6 +648,7 @@ impl Controller {
             dq_rad_s: state.dq_rad_s,
             gripper: self.robot.gripper_from_finger(state.finger_m),
             base_from_tcp: state.base_from_tcp,
+            tcp_rotvec,
             control_type: self.locked.map(|c| c as u32).unwrap_or(0),
             mode,
             active_request: self.active_request(),
@@ -600,4 +662,17 @@ impl Controller {
 
 fn norm(v: [f64; 3]) -> f64 {
     (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+}
+
+/// Formats ", joints at their limits: 4, 7" (nothing for an empty list) without allocating.
+struct JointList<'a>(&'a [u8]);
+
+impl std::fmt::Display for JointList<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        for (i, j) in self.0.iter().enumerate() {
+            f.write_str(if i == 0 { "; joints at their limits: " } else { ", " })?;
+            write!(f, "{j}")?;
+        }
+        Ok(())
+    }
 }

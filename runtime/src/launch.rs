@@ -295,17 +295,15 @@ impl Instance {
         Ok(None)
     }
 
-    /// Supervises the instance until a stop signal arrives (see
-    /// [`process::install_stop_signals`](ipc_schema::process::install_stop_signals)) or a child
-    /// exits, then stops both. `None`: stopped on request; `Some(what)`: which child ended and how.
+    /// Watches the instance until a stop signal arrives (see
+    /// [`process::install_stop_signals`]) or a child exits; the caller then calls [`Self::stop`].
+    /// `None`: a stop was requested; `Some(what)`: which child ended and how.
     pub fn supervise(&mut self) -> anyhow::Result<Option<String>> {
         loop {
-            if ipc_schema::process::stop_requested() {
-                self.stop();
+            if process::stop_requested() {
                 return Ok(None);
             }
             if let Some(what) = self.exited()? {
-                self.stop();
                 return Ok(Some(what));
             }
             std::thread::sleep(Duration::from_millis(50));

@@ -488,11 +488,18 @@ pub enum Criterion {
         #[serde(default = "default_upright_tol")]
         tolerance_deg: f64,
     },
-    /// The gripper ends open and the TCP at least `min_distance_m` from every named object.
+    /// The robot has let go: over the final `window_s` no robot geometry touches any named
+    /// object (with none named: any object or fixture), and the TCP ends at least
+    /// `min_distance_m` from every named object. How far the fingers are open does not count,
+    /// unless `require_open` asks for the old proxy as well (fingers at least half open).
     Released {
         objects: Vec<String>,
         #[serde(default = "default_release_distance")]
         min_distance_m: f64,
+        #[serde(default = "default_release_window")]
+        window_s: f64,
+        #[serde(default)]
+        require_open: bool,
     },
     /// The objects move less than `max_speed_m_s` over the final `duration_s`.
     Stable {
@@ -527,6 +534,9 @@ fn default_upright_tol() -> f64 {
 }
 fn default_release_distance() -> f64 {
     0.05
+}
+fn default_release_window() -> f64 {
+    0.5
 }
 fn default_stable_duration() -> f64 {
     0.5
@@ -892,12 +902,15 @@ impl Scene {
                         return Err(format!("task.success[{i}].tolerance_deg: accepted is a number in (0, 90)"));
                     }
                 }
-                Criterion::Released { objects, min_distance_m } => {
+                Criterion::Released { objects, min_distance_m, window_s, .. } => {
                     for o in objects {
                         object(o, i, "objects")?;
                     }
                     if !(min_distance_m.is_finite() && *min_distance_m >= 0.0) {
                         return Err(format!("task.success[{i}].min_distance_m: accepted is a number >= 0"));
+                    }
+                    if !(window_s.is_finite() && *window_s >= 0.0) {
+                        return Err(format!("task.success[{i}].window_s: accepted is a number >= 0"));
                     }
                 }
                 Criterion::Stable { objects, fixtures, duration_s, max_speed_m_s, max_joint_deg_s } => {

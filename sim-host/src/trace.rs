@@ -249,8 +249,29 @@ fn judge(scene: &Scene, trace: &Trace, s: &Sample, c: &Criterion) -> Check {
             let tilt = z[2].clamp(-1.0, 1.0).acos().to_degrees();
             Check { value: serde_json::json!({"tilt_deg": round(tilt)}), pass: tilt <= *tolerance_deg }
         }
-        Criterion::Released { objects, min_distance_m } => {
-            let open = s.finger_m > 0.5 * trace.finger_max_m;
+        Criterion::Released { objects, min_distance_m, window_s, require_open } => {
+            let Some(robot) = trace.owner("robot") else { return missing("robot") };
+            // What the robot must not touch: the named objects, or with none named every object
+            // and fixture (the table and the floor do not count).
+            let mut held = Vec::new();
+            for o in objects {
+                let Some(a) = trace.owner(o) else { return missing(o) };
+                held.push(a);
+            }
+            if objects.is_empty() {
+                let ground = |n: &str| matches!(n, "table" | "robot" | "floor");
+                held.extend((0..trace.owners.len()).filter(|&k| !ground(&trace.owners[k])).map(|k| k as u16));
+            }
+            let t_end = s.t_s;
+            let mut last_touch: Option<(f64, u16)> = None;
+            for x in trace.samples.iter().filter(|x| x.t_s >= t_end - window_s) {
+                for c in &x.contacts {
+                    let other = if c[0] == robot { c[1] } else if c[1] == robot { c[0] } else { continue };
+                    if held.contains(&other) {
+                        last_touch = Some((x.t_s, other));
+                    }
+                }
+            }
             let mut nearest = f64::INFINITY;
             for o in objects {
                 let Some(i) = trace.object(o) else { return missing(o) };
@@ -259,12 +280,21 @@ fn judge(scene: &Scene, trace: &Trace, s: &Sample, c: &Criterion) -> Check {
                     ((p[0] - s.tcp_m[0]).powi(2) + (p[1] - s.tcp_m[1]).powi(2) + (p[2] - s.tcp_m[2]).powi(2)).sqrt();
                 nearest = nearest.min(d);
             }
-            let value = if objects.is_empty() {
-                serde_json::json!({"gripper_open": open})
-            } else {
-                serde_json::json!({"gripper_open": open, "tcp_distance_m": round(nearest)})
-            };
-            Check { value, pass: open && nearest >= *min_distance_m }
+            let open = s.finger_m > 0.5 * trace.finger_max_m;
+            let mut value = serde_json::json!({
+                "robot_contact": last_touch.map(|(t, k)| serde_json::json!({
+                    "with": trace.owners[k as usize], "s_before_end": round(t_end - t)
+                })),
+                "gripper_open": open,
+            });
+            if !objects.is_empty() {
+                value["tcp_distance_m"] = serde_json::json!(round(nearest));
+            }
+            let long_enough = trace.samples.first().is_some_and(|f| t_end - f.t_s >= window_s - 0.011);
+            Check {
+                value,
+                pass: long_enough && last_touch.is_none() && nearest >= *min_distance_m && (open || !require_open),
+            }
         }
         Criterion::Stable { objects, fixtures, duration_s, max_speed_m_s, max_joint_deg_s } => {
             let t_end = s.t_s;
@@ -387,5 +417,41 @@ mod tests {
         assert!(evaluate(&scene, &trace(&z, &[0.0; 100])).success);
         // A trace shorter than the window cannot prove stability.
         assert!(!evaluate(&scene, &trace(&[0.2; 10], &[0.0; 10])).success);
+    }
+
+    #[test]
+    fn released_is_judged_by_contact_and_distance_not_finger_opening() {
+        let scene = scene_with("{ kind = \"released\", objects = [\"box\"], min_distance_m = 0.1 }");
+        // Hand 0.2 m from the box, fingers mostly closed (g = 0.4 leaves 30 % open), no contact.
+        let mut t = trace(&[0.02; 100], &[0.0; 100]);
+        t.samples.iter_mut().for_each(|s| s.finger_m = 0.3 * 0.04);
+        let e = evaluate(&scene, &t);
+        assert!(e.checks["released:box"].pass, "{:?}", e.checks);
+        // The old proxy, asked for explicitly, still fails it.
+        let strict = scene_with(
+            "{ kind = \"released\", objects = [\"box\"], min_distance_m = 0.1, require_open = true }",
+        );
+        assert!(!evaluate(&strict, &t).checks["released:box"].pass);
+        // A finger touching the box 0.2 s before the end: not released, whatever the opening.
+        let mut touching = trace(&[0.02; 100], &[0.0; 100]);
+        touching.samples[80].contacts = vec![[0, 2]];
+        let e = evaluate(&scene, &touching);
+        let c = &e.checks["released:box"];
+        assert!(!c.pass && c.value["robot_contact"]["with"] == "box", "{:?}", c);
+        // Contact before the final window no longer counts.
+        touching.samples[80].contacts.clear();
+        touching.samples[20].contacts = vec![[0, 2]];
+        assert!(evaluate(&scene, &touching).checks["released:box"].pass);
+        // Too close to the box: not released.
+        let mut close = trace(&[0.02; 100], &[0.0; 100]);
+        close.samples.iter_mut().for_each(|s| s.tcp_m = [0.5, 0.0, 0.08]);
+        assert!(!evaluate(&scene, &close).checks["released:box"].pass);
+        // With no object named, touching anything but the table and the floor counts.
+        let any = scene_with("{ kind = \"released\", objects = [] }");
+        let mut on_table = trace(&[0.02; 100], &[0.0; 100]);
+        on_table.samples[99].contacts = vec![[1, 2]];
+        assert!(evaluate(&any, &on_table).checks["released:gripper"].pass);
+        on_table.samples[99].contacts = vec![[0, 2]];
+        assert!(!evaluate(&any, &on_table).checks["released:gripper"].pass);
     }
 }

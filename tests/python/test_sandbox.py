@@ -98,3 +98,36 @@ def test_relative_scratch_paths_work(gym, tmp_path: Path) -> None:
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["exit"] == "ok" and r["violation"] is None, r
     assert (tmp_path / "rel" / "scratch" / "note.txt").read_text() == "kept"
+
+
+def test_exec_keeps_memory_only_when_asked(gym, tmp_path: Path) -> None:
+    """`r2g exec --memory DIR` copies DIR's records into the scratch folder's memory/ and appends
+    the program's new records to DIR, never touching an old one; without --memory the program
+    gets no memory/ and nothing is appended anywhere (robot-skill/memory/README.md)."""
+    memory = tmp_path / "memory"
+    memory.mkdir()
+    old = memory / "20250101T000000Z-00000000-0000-4000-8000-000000000000.json"
+    old.write_text('{"kind": "observation", "content": "old"}')
+    prog = tmp_path / "mem.py"
+    prog.write_text(
+        "import os, pathlib\n"
+        "m = pathlib.Path('memory')\n"
+        "print('present', m.is_dir(), sorted(os.listdir(m)) if m.is_dir() else [])\n"
+        "m.mkdir(exist_ok=True)\n"
+        "(m / '20250101T000000Z-00000000-0000-4000-8000-000000000000.json').write_text('overwritten')\n"
+        "(m / '20250102T000000Z-11111111-1111-4111-8111-111111111111.json').write_text('{\"kind\": \"warmup\"}')\n"
+    )
+    base = [str(R2G), "exec", str(prog), "--instance", gym.name, "--wall-s", "20"]
+    out = subprocess.run([*base, "--scratch", str(tmp_path / "s1"), "--memory", str(memory)],
+                         capture_output=True, text=True, timeout=120)
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["exit"] == "ok", r
+    assert f"present True ['{old.name}']" in r["stdout"], r["stdout"]
+    assert r["memory_added"] == ["20250102T000000Z-11111111-1111-4111-8111-111111111111.json"], r
+    assert old.read_text() == '{"kind": "observation", "content": "old"}'  # append-only
+    assert sorted(p.name for p in memory.iterdir()) == [old.name, r["memory_added"][0]]
+    # Without --memory: no memory/ in the scratch folder, nothing collected.
+    out = subprocess.run([*base, "--scratch", str(tmp_path / "s2")], capture_output=True, text=True, timeout=120)
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["exit"] == "ok" and "present False []" in r["stdout"] and "memory_added" not in r, r
+    assert len(list(memory.iterdir())) == 2

@@ -32,8 +32,8 @@ fn package(line: &str) -> String {
 
 #[test]
 fn dev_dependencies_change_no_features_of_the_release_graph() {
-    let release = graph(&["--workspace", "-e", "normal"]);
-    let with_dev = graph(&["--workspace", "-e", "normal,dev"]);
+    let release = graph(&["--workspace", "-e", "normal,build"]);
+    let with_dev = graph(&["--workspace", "-e", "normal,build,dev"]);
     let packages: BTreeSet<String> = release.iter().map(|l| package(l)).collect();
     let changed: Vec<&String> = with_dev.difference(&release).filter(|l| packages.contains(&package(l))).collect();
     assert!(
@@ -48,11 +48,17 @@ fn dev_dependencies_change_no_features_of_the_release_graph() {
 fn the_extension_alone_resolves_like_the_workspace() {
     let workspace = graph(&["--workspace", "-e", "normal,build"]);
     let robo = graph(&["-p", "robo", "-e", "normal,build"]);
-    let differ: Vec<&String> = robo.difference(&workspace).collect();
+    let differ: Vec<String> = robo
+        .difference(&workspace)
+        .map(|l| {
+            let theirs: Vec<&String> = workspace.iter().filter(|w| package(w) == package(l)).collect();
+            format!("robo alone: {l}; the workspace: {theirs:?}")
+        })
+        .collect();
     assert!(
         differ.is_empty(),
         "`maturin develop` (robo alone) would resolve these packages with other features than the \
-         workspace build, and compile them again; add pins with the workspace's features to \
-         robo/Cargo.toml: {differ:#?}"
+         workspace build, and compile them again; pin the workspace's features in robo/Cargo.toml: \
+         {differ:#?}"
     );
 }

@@ -21,10 +21,10 @@ fn out_dir(tag: &str) -> String {
     std::env::temp_dir().join(format!("r2g-gyms-{}-{tag}", std::process::id())).display().to_string()
 }
 
-/// Runs `r2g replay` and returns (exit code, evaluator JSON, stderr).
-fn replay(gym: &str, extra: &[&str]) -> (i32, Value, String) {
+/// Runs `r2g replay` (writing into `out_dir(tag)`) and returns (exit code, evaluator JSON, stderr).
+fn replay(gym: &str, tag: &str, extra: &[&str]) -> (i32, Value, String) {
     let out = Command::new(integration_tests::r2g())
-        .args(["replay", gym, "--out", &out_dir(gym)])
+        .args(["replay", gym, "--out", &out_dir(tag)])
         .args(extra)
         .output()
         .expect("run r2g replay");
@@ -50,7 +50,7 @@ fn r2g_gyms_lists_exactly_the_pack() {
 fn every_demonstration_succeeds_and_doing_nothing_fails() {
     let mut problems = Vec::new();
     for gym in listed_gyms() {
-        let (code, v, stderr) = replay(&gym, &[]);
+        let (code, v, stderr) = replay(&gym, &gym, &[]);
         if code != 0 || v["success"] != true {
             problems.push(format!("{gym}: demonstration did not succeed (exit {code}): {v}\n{stderr}"));
         }
@@ -58,25 +58,27 @@ fn every_demonstration_succeeds_and_doing_nothing_fails() {
             assert!(!v[key].is_null(), "{gym}: evaluator JSON lacks {key}: {v}");
         }
         assert!(v["checks"].as_object().is_some_and(|c| c.len() >= 3), "{gym}: too few checks: {v}");
-        let (code, v, _) = replay(&gym, &["--do-nothing"]);
+        let (code, v, _) = replay(&gym, &gym, &["--do-nothing"]);
         if code != 1 || v["success"] != false {
             problems.push(format!("{gym}: doing nothing was judged a success (exit {code}): {v}"));
         }
+        let _ = std::fs::remove_dir_all(out_dir(&gym));
     }
-    let _ = std::fs::remove_dir_all(out_dir("*"));
     assert!(problems.is_empty(), "{}", problems.join("\n"));
 }
 
 #[test]
 fn same_gym_seed_and_actions_give_the_same_trace() {
     let hash = |seed: &str| {
-        let (_, v, _) = replay("pick_block_plate", &["--seed", seed]);
+        let (_, v, _) = replay("pick_block_plate", "seeds", &["--seed", seed]);
         v["trace_sha256"].as_str().expect("sha").to_string()
     };
     let a = hash("7");
-    assert_eq!(a, hash("7"), "same seed, same actions, different trace");
+    let (again, other) = (hash("7"), hash("8"));
+    let _ = std::fs::remove_dir_all(out_dir("seeds"));
+    assert_eq!(a, again, "same seed, same actions, different trace");
     // The seed moves the block (jitter_xy_m), so another seed must give another trace.
-    assert_ne!(a, hash("8"), "different seeds gave the same trace");
+    assert_ne!(a, other, "different seeds gave the same trace");
 }
 
 #[test]
@@ -95,7 +97,7 @@ fn the_robotiq_2f85_picks_and_places_the_block_too() {
     let d = dir.display().to_string();
     let out = Command::new(integration_tests::r2g()).args(["author-demo", &d]).output().expect("author-demo");
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let (code, v, stderr) = replay(&d, &[]);
-    assert!(code == 0 && v["success"] == true, "{v}\n{stderr}");
+    let (code, v, stderr) = replay(&d, "robotiq", &[]);
     let _ = std::fs::remove_dir_all(&dir);
+    assert!(code == 0 && v["success"] == true, "{v}\n{stderr}");
 }

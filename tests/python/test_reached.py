@@ -1,0 +1,97 @@
+"""`executed` means reached: a chunk reports executed (post_actions returns 1) only when the
+measured state ends within the documented tolerance of its last waypoint; a chunk stopped short
+by contact fails with the measured error, in both control types. Live lockstep instances, real
+MuJoCo contact (the closed hand pressed onto the block)."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+
+import robo
+
+from conftest import R2G
+
+BLOCK_XY = [0.5, -0.12]      # pick_block_plate's block, 4 cm cube on the table (top at z = 0.04)
+DOWN = [1.0, 0.0, 0.0, 0.0]  # TCP pointing down (x, y, z, w): the start orientation
+
+
+def feedback() -> dict:
+    return robo.get_state([])["control_feedback"]
+
+
+def line(start: list[float], goal: list[float], g: float, step: float = 0.01) -> list[list[float]]:
+    n = max(1, math.ceil(math.dist(start[:3], goal[:3]) / step))
+    return [[s + (e - s) * k / n for s, e in zip(start[:3], goal[:3])] + list(goal[3:]) + [g] for k in range(1, n + 1)]
+
+
+def above_block(z: float) -> list[float]:
+    ee = robo.get_state([])["ee_pose"]
+    target = BLOCK_XY + [z] + ee[3:]
+    assert robo.post_actions({"actions": line(ee, target, 1.0), "type": "ee_pose", "freq": ""}) == 1, feedback()
+    f = feedback()
+    assert f["status"] == "executed" and f["reason"] == "executed", f
+    return target
+
+
+def test_an_ee_pose_chunk_pressed_into_the_block_fails_with_the_measured_error(lockstep) -> None:
+    assert robo.reset() == 1
+    target = above_block(0.12)  # reachable: executed
+    # 1 cm below the block's top with closed fingers: the block stops the hand.
+    into = target[:2] + [0.03] + target[3:]
+    assert robo.post_actions({"actions": line(target, into, 1.0, 0.005), "type": "ee_pose", "freq": ""}) == 0
+    f = feedback()
+    assert f["status"] == "failed" and f["reason"].startswith("not reached: the TCP stopped"), f
+    ee = robo.get_state([])["ee_pose"]
+    assert ee[2] > 0.035, ee  # really short of the target: resting on the block's top
+
+
+def ik(z: float, seed: list[float]) -> list[float]:
+    req = json.dumps({"position": BLOCK_XY + [z], "quaternion": DOWN, "seed": seed})
+    out = subprocess.run([str(R2G), "kin", "ik", "--robot", "panda"], input=req + "\n", capture_output=True,
+                         text=True, timeout=60, check=True)
+    sol = json.loads(out.stdout)
+    assert sol["ok"], sol
+    return sol["q"]
+
+
+def joint_line(q0: list[float], q1: list[float], g: float, steps: int = 20) -> list[list[float]]:
+    return [[a + (b - a) * k / steps for a, b in zip(q0, q1)] + [g] for k in range(1, steps + 1)]
+
+
+def test_a_joint_chunk_pressed_into_the_block_fails_and_a_free_one_executes(lockstep) -> None:
+    assert robo.reset() == 1  # joint control for this episode
+    home = robo.get_state([])["joint"]
+    above = ik(0.12, home)
+    assert robo.post_actions({"actions": joint_line(home, above, 1.0, 40), "type": "joint", "freq": ""}) == 1, feedback()
+    assert feedback()["final_joint_error_rad"] <= 0.005
+    # 1 cm below the block's top with closed fingers: the block stops the hand.
+    into = ik(0.03, above)
+    assert robo.post_actions({"actions": joint_line(above, into, 1.0), "type": "joint", "freq": ""}) == 0
+    f = feedback()
+    assert f["status"] == "failed" and f["reason"].startswith("not reached: the arm stopped"), f
+    assert f["final_joint_error_rad"] > 0.005, f
+    # Back up to where it came from: free of contact, so executed and within tolerance.
+    q = robo.get_state([])["joint"]
+    assert robo.post_actions({"actions": joint_line(q, above, 1.0), "type": "joint", "freq": ""}) == 1, feedback()
+    assert feedback()["final_joint_error_rad"] <= 0.005
+
+
+def test_the_reported_rotation_vector_never_flips(lockstep) -> None:
+    """At the start pose the TCP is turned a half turn about x, where [pi, 0, 0] and [-pi, 0, 0]
+    name the same rotation: every report keeps one of them; turning on past it stays continuous."""
+    assert robo.reset() == 1
+    first = robo.get_state([])["ee_pose"][3:]
+    assert abs(math.hypot(*first) - math.pi) < 0.01, first
+    for _ in range(20):
+        now = robo.get_state([])["ee_pose"][3:]
+        assert math.dist(now, first) < 1e-3, (now, first)
+    # Turn the hand 0.3 rad about the TCP's own z: the report moves a little, it does not jump.
+    ee = robo.get_state([])["ee_pose"]
+    q = robo.get_state([])["joint"]
+    turned = q[:6] + [q[6] + 0.3]
+    chunk = [[a + (b - a) * k / 10 for a, b in zip(q, turned)] + [-1.0] for k in range(1, 11)]
+    assert robo.post_actions({"actions": chunk, "type": "joint", "freq": ""}) == 1, feedback()
+    after = robo.get_state([])["ee_pose"][3:]
+    # (a half turn about an axis tilted by 0.15 rad: pi * 2 sin(0.075) = 0.47 away, not 2 pi)
+    assert 0.35 < math.dist(after, ee[3:]) < 0.6, (after, ee[3:])
