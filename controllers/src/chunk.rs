@@ -190,6 +190,7 @@ impl ChunkPlan {
         // Sample spacing along the TCP path: 1 cm, coarser for long chunks so that one chunk
         // never costs more than MAX_PATH_SAMPLES IK solves in all.
         let mut length = 0.0;
+        let mut turn = 0.0;
         let mut last = plan.poses[0];
         for a in actions {
             if a[..6].iter().all(|v| v.is_finite()) {
@@ -197,11 +198,16 @@ impl ChunkPlan {
                     Translation3::new(a[0], a[1], a[2]),
                     UnitQuaternion::from_scaled_axis(Vector3::new(a[3], a[4], a[5])),
                 );
+                turn += p.rotation.angle_to(&last.rotation);
                 length += (p.translation.vector - last.translation.vector).norm()
                     + PATH_ROT_M_PER_RAD * p.rotation.angle_to(&last.rotation);
                 last = p;
             }
         }
+        // Turning more than half a turn further than the direct way: rotation vectors
+        // interpolated component by component across the ±π wrap.
+        let direct = plan.poses[0].rotation.angle_to(&last.rotation);
+        let long_way = turn > direct + std::f64::consts::PI;
         let spacing = (length / MAX_PATH_SAMPLES as f64).max(PATH_SPACING_M);
         let mut prev = start_q;
         let mut t = 0.0;
@@ -222,6 +228,9 @@ impl ChunkPlan {
                 (turned, cfg.max_tcp_step_rad, StepQuantity::TcpRotation),
             ] {
                 if exceeds(value, max) {
+                    if long_way && quantity == StepQuantity::TcpRotation {
+                        return Err(Rejection::LongWayRound { waypoint: w, value, max, turn_rad: turn, direct_rad: direct });
+                    }
                     return Err(Rejection::StepTooLarge { waypoint: w, quantity, value, max });
                 }
             }

@@ -127,6 +127,16 @@ pub enum Rejection {
         value: f64,
         max: f64,
     },
+    /// A TCP turn over the cap in an ee_pose chunk whose waypoints turn the hand more than half
+    /// a turn further than the direct way from start to end: axis-angle vectors interpolated
+    /// component by component across the ±π wrap.
+    LongWayRound {
+        waypoint: usize,
+        value: f64,
+        max: f64,
+        turn_rad: f64,
+        direct_rad: f64,
+    },
 }
 
 /// What a step cap limits.
@@ -160,6 +170,7 @@ impl Rejection {
             Self::Halting => "halting",
             Self::UnknownRequestKind(_) => "unknown_request_kind",
             Self::StepTooLarge { .. } => "step_too_large",
+            Self::LongWayRound { .. } => "rotation_wrap",
         }
     }
 }
@@ -227,6 +238,10 @@ impl fmt::Display for Rejection {
                     value - max
                 )
             }
+            Self::LongWayRound { waypoint, value, max, turn_rad, direct_rad } => write!(
+                f,
+                "actions[{waypoint}]: the TCP turns {value:.2} rad (cap {max:.2}); the chunk turns {turn_rad:.1} rad to end {direct_rad:.2} rad away: rotation vectors interpolated across the ±π wrap? Use robo_perception.interpolate_poses, not more waypoints"
+            ),
         }
     }
 }

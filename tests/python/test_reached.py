@@ -95,3 +95,21 @@ def test_the_reported_rotation_vector_never_flips(lockstep) -> None:
     after = robo.get_state([])["ee_pose"][3:]
     # (a half turn about an axis tilted by 0.15 rad: pi * 2 sin(0.075) = 0.47 away, not 2 pi)
     assert 0.35 < math.dist(after, ee[3:]) < 0.6, (after, ee[3:])
+
+
+def test_a_chunk_interpolated_across_the_axis_angle_wrap_is_refused_with_the_fix(lockstep) -> None:
+    """Component-wise interpolation from [pi, 0, 0] to a vector on the other side of the wrap
+    spins the hand nearly a full turn: refused (nothing moves), and the reason names the helper
+    that takes the short way, which then works."""
+    import robo_perception as rp
+
+    assert robo.reset() == 1
+    ee = robo.get_state([])["ee_pose"]
+    sign = 1.0 if ee[3] > 0 else -1.0
+    goal = ee[:3] + [-sign * (math.pi - 0.2), 0.0, 0.0]  # 0.2 rad from the start, other side of pi
+    naive = [[a + (b - a) * k / 4 for a, b in zip(ee, goal)] + [-1.0] for k in range(1, 5)]
+    assert robo.post_actions({"actions": naive, "type": "ee_pose", "freq": ""}) == 0
+    f = feedback()
+    assert f["status"] == "rejected" and "interpolate_poses" in f["reason"] and "wrap" in f["reason"], f
+    short = [p + [-1.0] for p in rp.interpolate_poses(ee, goal, 0.01, 0.05)]
+    assert robo.post_actions({"actions": short, "type": "ee_pose", "freq": ""}) == 1, feedback()
