@@ -47,7 +47,8 @@ pub struct Scripted {
 
 impl Scripted {
     pub fn start(root: &Path, gym: &str, script: Option<&Path>, log: Option<&Path>) -> anyhow::Result<Self> {
-        let script = script.map_or_else(|| root.join("agent-host/scripted").join(format!("{gym}.json")), Path::to_path_buf);
+        let script =
+            script.map_or_else(|| root.join("agent-host/scripted").join(format!("{gym}.json")), Path::to_path_buf);
         if !script.is_file() {
             bail!("no scripted conversation for gym '{gym}' ({} is missing)", script.display());
         }

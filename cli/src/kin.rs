@@ -4,6 +4,7 @@
 //! `controllers`' FK or IK, print an answer line) and holds no kinematics of its own.
 
 use std::io::{BufRead, Write};
+
 use anyhow::Context;
 use controllers::kinematics::{from_arrays, to_arrays};
 use controllers::{FrameId, IkConfig, IkSolver, RobotModel, N};

@@ -3,10 +3,10 @@
 use std::io::Write;
 use std::time::Duration;
 
+use agent_host::session;
 use clap::{Parser, Subcommand, ValueEnum};
 use ipc_schema::process;
 use ipc_schema::Mode;
-use agent_host::session;
 use runtime::launch::{self, Instance, UpOptions};
 
 mod kin;

@@ -229,7 +229,13 @@ impl ChunkPlan {
             ] {
                 if exceeds(value, max) {
                     if long_way && quantity == StepQuantity::TcpRotation {
-                        return Err(Rejection::LongWayRound { waypoint: w, value, max, turn_rad: turn, direct_rad: direct });
+                        return Err(Rejection::LongWayRound {
+                            waypoint: w,
+                            value,
+                            max,
+                            turn_rad: turn,
+                            direct_rad: direct,
+                        });
                     }
                     return Err(Rejection::StepTooLarge { waypoint: w, quantity, value, max });
                 }

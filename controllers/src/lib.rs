@@ -8,8 +8,8 @@ pub mod ik;
 pub mod kinematics;
 pub mod limiter;
 pub mod math;
-pub mod reference;
 pub mod monitor;
+pub mod reference;
 pub mod robot;
 pub mod safety;
 

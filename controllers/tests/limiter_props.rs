@@ -1,7 +1,7 @@
 //! Property tests: whatever chunks arrive, and whenever, the command stream keeps every limit.
 
-use controllers::Reference;
 use controllers::monitor::Monitor;
+use controllers::Reference;
 use controllers::{ChunkPlan, JointTracker, LimiterConfig, Profile, RobotModel, N};
 use proptest::prelude::*;
 

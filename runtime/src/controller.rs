@@ -2,11 +2,11 @@
 //! chunk, limit the command, and tell when a request has finished. The same code runs in
 //! wall and lockstep mode, so lockstep results carry over.
 
-use controllers::Reference;
 use controllers::diffik::{self, DiffIkConfig};
 use controllers::error::Text;
 use controllers::ik::{IkConfig, IkSolver};
 use controllers::safety::SafetyChecks;
+use controllers::Reference;
 use controllers::{ChunkPlan, JointTracker, LimiterConfig, Rejection, RobotModel};
 use ipc_schema::{
     ControlType, JointCommand, Profile, Reply, Request, RequestKind, RobotState, SimState, Status, N_JOINTS,

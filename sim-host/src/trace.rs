@@ -266,7 +266,13 @@ fn judge(scene: &Scene, trace: &Trace, s: &Sample, c: &Criterion) -> Check {
             let mut last_touch: Option<(f64, u16)> = None;
             for x in trace.samples.iter().filter(|x| x.t_s >= t_end - window_s) {
                 for c in &x.contacts {
-                    let other = if c[0] == robot { c[1] } else if c[1] == robot { c[0] } else { continue };
+                    let other = if c[0] == robot {
+                        c[1]
+                    } else if c[1] == robot {
+                        c[0]
+                    } else {
+                        continue;
+                    };
                     if held.contains(&other) {
                         last_touch = Some((x.t_s, other));
                     }
@@ -428,9 +434,8 @@ mod tests {
         let e = evaluate(&scene, &t);
         assert!(e.checks["released:box"].pass, "{:?}", e.checks);
         // The old proxy, asked for explicitly, still fails it.
-        let strict = scene_with(
-            "{ kind = \"released\", objects = [\"box\"], min_distance_m = 0.1, require_open = true }",
-        );
+        let strict =
+            scene_with("{ kind = \"released\", objects = [\"box\"], min_distance_m = 0.1, require_open = true }");
         assert!(!evaluate(&strict, &t).checks["released:box"].pass);
         // A finger touching the box 0.2 s before the end: not released, whatever the opening.
         let mut touching = trace(&[0.02; 100], &[0.0; 100]);
