@@ -80,7 +80,7 @@ class _StateBase(TypedDict):
     """7 measured joint positions, rad."""
     ee_pose: list[float]
     """Measured TCP in the robot base frame: x, y, z (m), then axis-angle ax, ay, az (rad); of the
-    equivalent axis-angle vectors, the one nearest the previous report (never a flip)."""
+    equivalent axis-angle vectors, the one nearest the previous report (no flips in normal use)."""
     gripper: list[float]
     """One measured value: -1 open ... +1 closed. Short of +1 after closing: something is held."""
     joint_velocity: list[float]

@@ -10,11 +10,27 @@ pub const MAX_RECORD_BYTES: u64 = 64 * 1024;
 
 /// Gives a fresh scratch folder `memory/` with copies of every earlier record in `memory_dir`
 /// (none if it does not exist), so a stage program reads them where the documents say.
+/// Whatever an earlier program left at `scratch/memory` (a reused scratch folder of `r2g exec`)
+/// is removed first, following no links, so a planted link cannot redirect the copies.
 pub fn seed(scratch: &Path, memory_dir: &Path) -> anyhow::Result<()> {
-    if let Ok(rd) = std::fs::read_dir(memory_dir) {
-        std::fs::create_dir_all(scratch.join("memory"))?;
-        for e in rd.flatten().filter(|e| e.file_type().is_ok_and(|t| t.is_file())) {
-            let _ = std::fs::copy(e.path(), scratch.join("memory").join(e.file_name()));
+    use std::os::unix::fs::OpenOptionsExt as _;
+    let Ok(rd) = std::fs::read_dir(memory_dir) else { return Ok(()) };
+    let dst = scratch.join("memory");
+    match std::fs::symlink_metadata(&dst) {
+        Ok(m) if m.is_dir() => std::fs::remove_dir_all(&dst)?,
+        Ok(_) => std::fs::remove_file(&dst)?,
+        Err(_) => {}
+    }
+    std::fs::create_dir(&dst)?;
+    for e in rd.flatten().filter(|e| e.file_type().is_ok_and(|t| t.is_file())) {
+        let Ok(body) = std::fs::read(e.path()) else { continue };
+        let out = std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .custom_flags(libc::O_NOFOLLOW)
+            .open(dst.join(e.file_name()));
+        if let Ok(mut out) = out {
+            let _ = out.write_all(&body);
         }
     }
     Ok(())

@@ -204,10 +204,13 @@ impl ChunkPlan {
                 last = p;
             }
         }
-        // Turning more than half a turn further than the direct way: rotation vectors
-        // interpolated component by component across the ±π wrap.
+        // Rotation vectors interpolated component by component across the ±π wrap turn the hand
+        // the long way round: a full turn less the direct angle, more than half a turn further
+        // than the direct way. (A deliberate turn past π looks the same; the reason says
+        // "probably".)
         let direct = plan.poses[0].rotation.angle_to(&last.rotation);
-        let long_way = turn > direct + std::f64::consts::PI;
+        let pi = std::f64::consts::PI;
+        let long_way = turn > direct + pi && (turn + direct - 2.0 * pi).abs() < 0.5;
         let spacing = (length / MAX_PATH_SAMPLES as f64).max(PATH_SPACING_M);
         let mut prev = start_q;
         let mut t = 0.0;

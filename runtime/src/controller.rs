@@ -343,11 +343,12 @@ impl Controller {
         self.pending_reset = None;
         self.finger_prev = state.finger_m;
         self.finger_still_ticks = 0;
+        // Every episode reports its start pose the same way, whatever the last one did.
+        self.rotvec = None;
         self.ensure_tracker(state);
         Some(Reply::new(id, client, Status::Executed, "reset: robot and objects restored"))
     }
 
-    /// One tick: the command to send and, when a request just finished, its reply.
     /// The final reply of a chunk whose command has come to rest: `executed` only when the
     /// measured state is within the reach tolerance of the last waypoint (the TCP pose for
     /// ee_pose chunks, the joints for joint chunks), else `failed` with the measured error and
@@ -356,8 +357,11 @@ impl Controller {
     fn reached(&self, id: u64, client: u64, q: &[f64; N_JOINTS], err: f64, worst: usize) -> Reply {
         let mut at_limit = [0u8; N_JOINTS];
         let mut n_at = 0;
+        // The limiter keeps every command `q_margin_rad` inside the limits: that is where a joint
+        // that cannot go further stops.
+        let margin = self.cfg.q_margin_rad;
         for (j, lim) in self.robot.joints.iter().enumerate() {
-            if q[j] - lim.q_min_rad < AT_LIMIT_RAD || lim.q_max_rad - q[j] < AT_LIMIT_RAD {
+            if q[j] - (lim.q_min_rad + margin) < AT_LIMIT_RAD || (lim.q_max_rad - margin) - q[j] < AT_LIMIT_RAD {
                 at_limit[n_at] = (j + 1) as u8;
                 n_at += 1;
             }
@@ -395,6 +399,7 @@ impl Controller {
         Reply::new(id, client, Status::Executed, "executed")
     }
 
+    /// One tick: the command to send and, when a request just finished, its reply.
     pub fn tick(&mut self, state: &SimState) -> (JointCommand, Option<Reply>) {
         let mut reply = self.complete_reset(state);
         self.ensure_tracker(state);
@@ -524,15 +529,20 @@ impl Controller {
                     let timed_out = a.t_s - since_s > SETTLE_TIMEOUT_S;
                     if (err < SETTLE_TOL_RAD && !moving && finger_done) || timed_out {
                         let mut r = self.reached(a.id, a.client, &state.q_rad, err, worst);
-                        r.executed = if r.status == Status::Executed as u32 {
-                            self.plan.len() as u32
-                        } else {
-                            self.reference.reached as u32
-                        };
+                        let reached = r.status == Status::Executed as u32;
+                        // Not reached: the last waypoint was commanded but never attained.
+                        r.executed = (self.plan.len() - usize::from(!reached)) as u32;
                         r.final_joint_error_rad = err;
                         reply = Some(r);
                         self.active = None;
                         self.reference.dq_rad_s = [0.0; N_JOINTS];
+                        if !reached {
+                            // Hold where the arm measurably is instead of pressing on towards a
+                            // target it cannot reach (contact, a limit).
+                            self.reference.q_rad = state.q_rad;
+                            self.reference.goal_q_rad = state.q_rad;
+                            self.q_ref = state.q_rad;
+                        }
                     }
                 }
             }

@@ -355,7 +355,10 @@ mod tests {
 
     fn scene_with(rules: &str) -> Scene {
         let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-        let dir = std::env::temp_dir().join(format!("r2g-trace-unit-{}-{}", std::process::id(), rules.len()));
+        // Tests run in parallel: one folder per call.
+        static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir = std::env::temp_dir().join(format!("r2g-trace-unit-{}-{n}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("dir");
         let text = format!(
             "name = \"t\"\ncameras = []\n[robot]\nurdf = \"{}\"\ninitial_joints_rad = [0.0, -0.78, 0.0, -2.35, 0.0, 1.57, 0.78]\n[[objects]]\nname = \"box\"\nshape = \"box\"\nsize_m = [0.02, 0.02, 0.02]\nposition_m = [0.5, 0.0, 0.02]\n[task]\nsuccess = [{rules}]\n",

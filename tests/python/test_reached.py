@@ -97,6 +97,21 @@ def test_the_reported_rotation_vector_never_flips(lockstep) -> None:
     assert 0.35 < math.dist(after, ee[3:]) < 0.6, (after, ee[3:])
 
 
+def test_turning_past_a_half_turn_keeps_the_report_continuous(lockstep) -> None:
+    """Tilting the hand 0.1 rad further about x than the start's half turn: the report continues
+    to a norm of pi + 0.1 instead of flipping to the principal vector -(pi - 0.1) about x."""
+    import robo_perception as rp
+
+    assert robo.reset() == 1
+    ee = robo.get_state([])["ee_pose"]
+    sign = 1.0 if ee[3] > 0 else -1.0
+    goal = ee[:3] + [sign * (math.pi + 0.1), 0.0, 0.0]
+    chunk = [p + [-1.0] for p in rp.interpolate_poses(ee, goal, 0.01, 0.02)]
+    assert robo.post_actions({"actions": chunk, "type": "ee_pose", "freq": ""}) == 1, feedback()
+    after = robo.get_state([])["ee_pose"][3:]
+    assert math.dist(after, goal[3:]) < 0.03 and math.hypot(*after) > math.pi, (after, goal)
+
+
 def test_a_chunk_interpolated_across_the_axis_angle_wrap_is_refused_with_the_fix(lockstep) -> None:
     """Component-wise interpolation from [pi, 0, 0] to a vector on the other side of the wrap
     spins the hand nearly a full turn: refused (nothing moves), and the reason names the helper

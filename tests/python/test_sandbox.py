@@ -131,3 +131,25 @@ def test_exec_keeps_memory_only_when_asked(gym, tmp_path: Path) -> None:
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["exit"] == "ok" and "present False []" in r["stdout"] and "memory_added" not in r, r
     assert len(list(memory.iterdir())) == 2
+
+
+def test_exec_memory_ignores_a_link_planted_in_a_reused_scratch(gym, tmp_path: Path) -> None:
+    """A program plants `memory -> elsewhere` in its scratch folder; the next `r2g exec --memory`
+    on that scratch must not copy records through the link (nor truncate them)."""
+    memory, elsewhere = tmp_path / "memory", tmp_path / "elsewhere"
+    memory.mkdir()
+    elsewhere.mkdir()
+    old = memory / "20250101T000000Z-00000000-0000-4000-8000-000000000000.json"
+    old.write_text('{"kind": "observation"}')
+    plant = tmp_path / "plant.py"
+    plant.write_text(f"import os\nos.symlink({str(elsewhere)!r}, 'memory')\nprint('planted', os.path.islink('memory'))\n")
+    look = tmp_path / "look.py"
+    look.write_text("import os\nprint('link', os.path.islink('memory'), sorted(os.listdir('memory')))\n")
+    base = [str(R2G), "exec", "--instance", gym.name, "--wall-s", "20", "--scratch", str(tmp_path / "s")]
+    r = json.loads(subprocess.run([*base[:2], str(plant), *base[2:]], capture_output=True, text=True,
+                                  timeout=120).stdout.strip().splitlines()[-1])
+    assert "planted True" in r["stdout"], r
+    r = json.loads(subprocess.run([*base[:2], str(look), *base[2:], "--memory", str(memory)], capture_output=True,
+                                  text=True, timeout=120).stdout.strip().splitlines()[-1])
+    assert f"link False ['{old.name}']" in r["stdout"], r
+    assert list(elsewhere.iterdir()) == [] and old.read_text() == '{"kind": "observation"}'
