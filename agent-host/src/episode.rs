@@ -400,13 +400,25 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
     Ok(out)
 }
 
-/// The verdict sim-host wrote for the newest episode in `trace_dir`, waiting up to `wait`.
+/// The evaluation files sim-host has written into `trace_dir` so far.
+fn verdict_files(trace_dir: &Path) -> Vec<PathBuf> {
+    std::fs::read_dir(trace_dir)
+        .map(|d| d.flatten().map(|e| e.path()).filter(|p| p.to_string_lossy().ends_with(".eval.json")).collect())
+        .unwrap_or_default()
+}
+
+/// How many episodes of `trace_dir` have been judged so far (pass it to `newest_verdict` as
+/// `after` to wait for the next verdict, never an earlier one).
+pub fn verdict_count(trace_dir: &Path) -> usize {
+    verdict_files(trace_dir).len()
+}
+
+/// The verdict sim-host wrote for the newest episode in `trace_dir`, once more than `after`
+/// exist, waiting up to `wait`.
 pub fn newest_verdict(trace_dir: &Path, after: usize, wait: Duration) -> anyhow::Result<Value> {
     let t0 = Instant::now();
     loop {
-        let mut evals: Vec<PathBuf> = std::fs::read_dir(trace_dir)
-            .map(|d| d.flatten().map(|e| e.path()).filter(|p| p.to_string_lossy().ends_with(".eval.json")).collect())
-            .unwrap_or_default();
+        let mut evals = verdict_files(trace_dir);
         if evals.len() > after {
             evals.sort_by_key(|p| {
                 p.file_name()

@@ -149,10 +149,12 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
         skills: String::new(),
     };
     let result = episode::run(&cfg, &instance);
-    // Stopping the instance ends the episode: sim-host judges it from its native trace.
+    // Stopping the instance ends the episode: sim-host judges it from its native trace. Only a
+    // verdict written after this point is the last episode's (each reset() wrote one before).
+    let judged_before = episode::verdict_count(&trace_dir);
     inst.stop();
     let mut result = result?;
-    let eval = episode::newest_verdict(&trace_dir, 0, Duration::from_secs(10))?;
+    let eval = episode::newest_verdict(&trace_dir, judged_before, Duration::from_secs(10))?;
     result.success = eval["success"].as_bool().unwrap_or(false);
     result.evaluation = eval;
     std::fs::write(run_dir.join("result.json"), serde_json::to_vec_pretty(&result)?)?;

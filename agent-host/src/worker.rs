@@ -391,6 +391,8 @@ impl Worker {
             .env("OPENBLAS_NUM_THREADS", "1")
             .env("OMP_NUM_THREADS", "1")
             .env("MALLOC_ARENA_MAX", "2")
+            // robo_perception keeps object identities for the whole episode in this file
+            .env("R2G_PERCEPTION_TRACKS", self.cfg.scratch.join(".perception-tracks.json"))
             .current_dir(&self.cfg.scratch)
             .stdin(Stdio::null())
             .stdout(std::fs::File::create(&out_path)?)

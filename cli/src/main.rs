@@ -246,7 +246,7 @@ enum BenchCmd {
     /// MuJoCo's own segmentation, lift rate of the example pick program (judged from the native
     /// trace), segmentation and grasp times beside a back-projection baseline.
     Perception {
-        /// Only these gyms (comma-separated); default every gym with graspable objects.
+        /// Only these gyms (comma-separated); default every gym (IoU and lifts for those with graspable objects).
         #[arg(long, value_delimiter = ',')]
         gyms: Vec<String>,
         /// Segmentation and grasp proposals only, no pick attempts.

@@ -219,6 +219,9 @@ impl fmt::Display for Rejection {
                 for (i, j) in (0..8).filter(|j| at_limits & (1 << j) != 0).enumerate() {
                     write!(f, "{}{}", if i == 0 { "; joints at their limits: " } else { ", " }, j + 1)?;
                 }
+                if *at_limits == 0 {
+                    write!(f, "; no joint is at its limit: the pose is out of the arm's reach, or needs another arm configuration")?;
+                }
                 write!(f, ")")
             }
             Self::Unsafe { waypoint, detail } => write!(f, "actions[{waypoint}] is refused: {detail}"),

@@ -28,15 +28,19 @@ STEP_M, STEP_RAD = 0.04, 0.30          # below max_tcp_step_m / max_tcp_step_rad
 LIFT_M = 0.10
 
 
-def move(poses, gripper, label):
-    """Send ee_pose waypoints (in chunks of <= 200); stop the program on a refusal."""
+def move(poses, gripper, label, stop=True):
+    """Send ee_pose waypoints (in chunks of <= 200). On a refusal or failure: stop the program
+    (``stop``) or return False."""
     for k in range(0, len(poses), 200):
         chunk = rp.waypoints(poses[k:k + 200], gripper)
         if not post_actions({"actions": chunk, "type": "ee_pose", "freq": ""}):
             fb = get_state([])["control_feedback"]
             print(f"{label}: {fb['status']} after {fb['executed']} waypoints: {fb['reason']}")
-            sys.exit(2)
+            if stop:
+                sys.exit(2)
+            return False
     print(f"{label}: ok ({len(poses)} waypoints)")
+    return True
 
 
 def path_to(goal, max_m=STEP_M):
@@ -56,6 +60,16 @@ def find_target(state, near=None):
 
 
 def main():
+    info = pick(PROMPT)
+    print(f"RESULT lifted={info['lifted']} rise={info['rise']:.3f}")
+    sys.exit(0 if info["lifted"] else 1)
+
+
+def pick(prompt):
+    """Pick the object `prompt` names and lift it LIFT_M. Returns {"lifted", "rise", "grasp",
+    "start_center", "object_height"}; exits the program when nothing can be tried."""
+    global PROMPT
+    PROMPT = prompt
     state = get_state(["agentview", "wrist"], raw=True)
     scene, target = find_target(state)
     print(f"segmentation: {scene.timings_ms['total']:.0f} ms, plane z0={scene.plane.height_at_origin:.4f}")
@@ -103,8 +117,8 @@ def main():
     lifted = bool(target3 is not None and rise > 0.05 and grip < 0.95)
     print(f"gripper {grip:.2f} (1 = closed on nothing); object centre z {start_center[2]:.3f} -> "
           f"{target3.center[2] if target3 is not None else float('nan'):.3f}")
-    print(f"RESULT lifted={lifted} rise={rise:.3f}")
-    sys.exit(0 if lifted else 1)
+    return {"lifted": lifted, "rise": rise, "grasp": g, "start_center": start_center,
+            "object_height": float(target.height)}
 
 
 if __name__ == "__main__":

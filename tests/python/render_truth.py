@@ -13,9 +13,11 @@ fixture name, `robot`, or `world` (table, floor).
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -24,6 +26,14 @@ from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
 import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+if str(ROOT / "agent-host" / "py" / "lib") not in sys.path:  # robo_perception, for the tooling below
+    sys.path.insert(0, str(ROOT / "agent-host" / "py" / "lib"))
+R2G = Path(os.environ.get("R2G_BIN", str(ROOT / "target" / "release" / "r2g")))
+"""The r2g binary live tests run ($R2G_BIN, default this checkout's release build)."""
+GYMS_DIR = Path(os.environ.get("R2G_GYMS", str(ROOT / "gyms")))
+"""The gym pack ($R2G_GYMS, default this checkout's gyms/)."""
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -204,3 +214,48 @@ def initial_fixtures(scene: Mapping) -> dict[str, float]:
 def iou(a: np.ndarray, b: np.ndarray) -> float:
     union = np.logical_or(a, b).sum()
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
+# ------------------------------------------------------------------------------------------
+# Moving a live gym (test and benchmark tooling; the instance is the one last `use`d)
+# ------------------------------------------------------------------------------------------
+
+def down(yaw: float) -> list[float]:
+    """Axis-angle of the hand pointing straight down, turned by `yaw` about the vertical."""
+    import robo_perception as rp
+    R = rp.axis_angle_to_matrix([0.0, 0.0, yaw]) @ rp.axis_angle_to_matrix([math.pi, 0.0, 0.0])
+    return [float(v) for v in rp.matrix_to_axis_angle(R)]
+
+
+def move_tcp(xyz: Sequence[float], yaw: float, gripper: float = -1.0, hop: float = 0.2) -> bool:
+    """One ee_pose chunk to `xyz` pointing down at `yaw`: up to `hop`, across, down (steps of at
+    most 4 cm / 0.3 rad). True when it executed."""
+    import robo
+    import robo_perception as rp
+    here = list(robo.get_state([])["ee_pose"])
+    goal = list(xyz) + down(yaw)
+    via = [here[:2] + [max(hop, here[2])] + here[3:], list(xyz[:2]) + [max(hop, xyz[2])] + goal[3:], goal]
+    path, start = [], here
+    for p in via:
+        if p is goal or np.linalg.norm(np.subtract(p[:3], start[:3])) > 1e-4:
+            path += rp.interpolate_poses(start, p, 0.04, 0.3)
+            start = p
+    return robo.post_actions({"type": "ee_pose", "freq": "", "actions": rp.waypoints(path, gripper)}) == 1
+
+
+def move_joints(target: Sequence[float], gripper: float = -1.0) -> bool:
+    """One joint chunk, straight in joint space, steps of at most 0.3 rad. True when it executed."""
+    import robo
+    here = np.asarray(robo.get_state([])["joint"])
+    n = max(1, int(math.ceil(np.abs(np.asarray(target) - here).max() / 0.3)))
+    path = [list(here + (np.asarray(target) - here) * (k / n)) + [gripper] for k in range(1, n + 1)]
+    return robo.post_actions({"type": "joint", "freq": "", "actions": path}) == 1
+
+
+def trace_state(scene: dict, trace: dict) -> tuple[dict, dict]:
+    """Object poses and fixture joints (MuJoCo units) of a native trace's last sample."""
+    last = trace["samples"][-1]
+    objects = {n: last["objects"][i] for i, n in enumerate(trace["objects"])}
+    kinds = {f["name"]: (f.get("joint") or {}).get("kind", "hinge") for f in scene.get("fixtures", [])}
+    fixtures = {n: (math.radians(v) if kinds.get(n) == "hinge" else v) for n, v in zip(trace["joints"], last["joints"])}
+    return objects, fixtures

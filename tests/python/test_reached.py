@@ -128,3 +128,44 @@ def test_a_chunk_interpolated_across_the_axis_angle_wrap_is_refused_with_the_fix
     assert f["status"] == "rejected" and "interpolate_poses" in f["reason"] and "wrap" in f["reason"], f
     short = [p + [-1.0] for p in rp.interpolate_poses(ee, goal, 0.01, 0.05)]
     assert robo.post_actions({"actions": short, "type": "ee_pose", "freq": ""}) == 1, feedback()
+
+
+def test_open_drawer_chunks_return_0_with_what_blocked_them(tmp_path) -> None:
+    """Like the open_drawer run that came back `executed` short of its target: every chunk that
+    cannot end at its last waypoint returns 0. Refused before motion when acceptance can tell
+    (joints at their limits named; out of reach said so), failed with the measured error when
+    something the checks do not model (the cabinet) stops the arm."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "agent-host" / "py" / "lib"))
+    import render_truth as rt
+    import robo_perception as rp
+
+    g = rt.LiveGym(R2G, R2G.parents[2] / "gyms", "open_drawer", tag="reach")
+    try:
+        assert g.ready.wait(90), "r2g up did not print READY"
+        g.use()
+
+        def send(xyz, rot=None):
+            robo.reset()
+            s = robo.get_state([])
+            goal = list(xyz) + list(rot if rot is not None else s["ee_pose"][3:])
+            path = rp.interpolate_poses(s["ee_pose"], goal, max_step_m=0.03, max_step_rad=0.25)
+            r = robo.post_actions({"type": "ee_pose", "freq": "", "actions": rp.waypoints(path, -1.0)})
+            return r, feedback(), s["joint"], robo.get_state([])["joint"]
+
+        # folded in close to the base: the elbow and shoulder would pass their limits
+        r, f, before, after = send((0.15, 0.0, 0.25))
+        assert r == 0 and f["status"] == "rejected", f
+        assert "joints at their limits: 2, 4" in f["reason"], f["reason"]
+        assert max(abs(a - b) for a, b in zip(before, after)) < 1e-6   # nothing moved
+        # stretched beyond reach: no joint at a limit, and the reason says what that means
+        r, f, before, after = send((0.95, 0.0, 0.25))
+        assert r == 0 and f["status"] == "rejected" and "out of the arm's reach" in f["reason"], f
+        # the hand turned level and pushed into the cabinet: accepted, stopped short, failed
+        r, f, _, _ = send((0.6, 0.0, 0.2), (math.pi / 2, 0.0, 0.0))
+        assert r == 0 and f["status"] == "failed" and f["reason"].startswith("not reached:"), f
+        mm = float(f["reason"].split("stopped ")[1].split(" mm")[0])
+        assert mm > 5.0, f["reason"]
+    finally:
+        g.stop()

@@ -153,3 +153,28 @@ def test_exec_memory_ignores_a_link_planted_in_a_reused_scratch(gym, tmp_path: P
                                   text=True, timeout=120).stdout.strip().splitlines()[-1])
     assert f"link False ['{old.name}']" in r["stdout"], r
     assert list(elsewhere.iterdir()) == [] and old.read_text() == '{"kind": "observation"}'
+
+
+def test_exec_programs_of_one_scratch_share_object_identities(gym, tmp_path: Path) -> None:
+    """The host names a tracker file in the scratch folder ($R2G_PERCEPTION_TRACKS), so a second
+    stage program sees the objects under the numbers and names the first one gave them
+    (api/PERCEPTION.md, "Identity across observations")."""
+    prog = tmp_path / "look.py"
+    prog.write_text(
+        "import os\n"
+        "from robo import get_state\n"
+        "import robo_perception as rp\n"
+        "s = get_state(['agentview', 'wrist'], raw=True)\n"
+        "sc = rp.segment_scene(s)\n"
+        "print('file', os.path.basename(os.environ.get('R2G_PERCEPTION_TRACKS', '')))\n"
+        "print('ids', sorted((o.track_id, o.color_name, o.shape_name) for o in sc.objects))\n"
+    )
+    base = [str(R2G), "exec", str(prog), "--instance", gym.name, "--wall-s", "30", "--scratch", str(tmp_path / "s")]
+    runs = [json.loads(subprocess.run(base, capture_output=True, text=True, timeout=120).stdout.strip().splitlines()[-1])
+            for _ in range(2)]
+    for r in runs:
+        assert r["exit"] == "ok", r
+        assert "file .perception-tracks.json" in r["stdout"], r["stdout"]
+    ids = [next(line for line in r["stdout"].splitlines() if line.startswith("ids")) for r in runs]
+    assert ids[0] == ids[1] and "None" not in ids[0] and "(0," in ids[0], ids
+    assert (tmp_path / "s" / ".perception-tracks.json").is_file()

@@ -36,7 +36,6 @@ import json
 import math
 import numbers
 import os
-import struct
 import sys
 import time
 import zlib
@@ -232,20 +231,13 @@ def rle_decode(rle: Any, shape: Optional[tuple[int, int]] = None) -> np.ndarray:
     return np.repeat(values, c).reshape(H, W)
 
 
-def _png_chunk(kind: bytes, body: bytes) -> bytes:
-    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
-
-
 def encode_png(rgb: np.ndarray, level: int = 3) -> bytes:
-    """(H, W, 3) uint8 RGB -> PNG bytes (8 bit, no filter, zlib ``level``)."""
+    """(H, W, 3) uint8 RGB -> PNG bytes (8 bit, zlib ``level``); the encoder is
+    `robo_perception.encode_png`, limited here to RGB as the segmentation service expects."""
     a = np.asarray(rgb)
     if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
         raise ValueError(f"encode_png needs an (H, W, 3) uint8 array, got {a.shape} {a.dtype}")
-    H, W = a.shape[:2]
-    rows = np.zeros((H, 1 + 3 * W), dtype=np.uint8)
-    rows[:, 1:] = a.reshape(H, 3 * W)
-    return (b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", struct.pack(">IIBBBBB", W, H, 8, 2, 0, 0, 0))
-            + _png_chunk(b"IDAT", zlib.compress(rows.tobytes(), level)) + _png_chunk(b"IEND", b""))
+    return rp.encode_png(a, level)
 
 
 def _pack_mask(mask: np.ndarray) -> bytes:

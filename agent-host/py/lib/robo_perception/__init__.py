@@ -39,8 +39,13 @@ The package has one module per concept; every name is re-exported here, so ``rp.
 * ``voxels`` - voxel grids, down-sampling, connected components, Euclidean clustering;
 * ``naming`` - colour and shape names;
 * ``segmentation`` - ObjectCluster, SceneSegmentation, segment_scene;
-* ``prompts`` - parse_prompt, rank_objects, select, segment;
-* ``grasps`` - Grasp, grasp_rotation, propose_grasps.
+* ``prompts`` - parse_prompt (unknown words are a PromptError), rank_objects, select, segment;
+* ``grasps`` - Grasp, grasp_rotation, propose_grasps (steerable by region and closing direction);
+* ``placing`` - place_poses (place / pre-place / retreat TCP poses), find_markings;
+* ``tracking`` - Tracker: object identities and names across the observations of an episode;
+* ``report`` - PerceptionWarning (ambiguous prompts, implausible planes);
+* ``images`` - projection, markers, crops and PNG files;
+* ``robot`` - the Panda's description, forward kinematics, the self-filter (robot_mask).
 """
 
 from __future__ import annotations
@@ -55,8 +60,14 @@ from .geometry import (OrientedBox, Plane, convex_hull_2d, estimate_normals, fit
                        obb_in_plane, obb_pca)
 from .naming import COLOR_NAMES, SHAPE_NAMES, color_name, shape_name
 from .segmentation import ObjectCluster, SceneSegmentation, segment_scene
-from .prompts import parse_prompt, rank_objects, segment, select
+from .prompts import PromptError, known_words, parse_prompt, rank_objects, segment, select
+from .report import PerceptionWarning
+from .tracking import Track, Tracker
 from .grasps import Grasp, grasp_rotation, propose_grasps
+from .placing import Marking, Placement, find_markings, place_poses
+from .images import crop_image, draw_markers, encode_png, fingertip_points, project, save_png, visible
+from .robot import (PANDA, RobotCapsule, RobotDescription, RobotJoint, RobotShapes, capsule_distances, link_poses,
+                    robot_mask, robot_shapes, rpy_to_matrix, tcp_matrix, tcp_pose)
 
 __all__ = [
     # constants
@@ -72,9 +83,17 @@ __all__ = [
     "fit_plane_ransac", "voxel_downsample", "estimate_normals",
     # segmentation
     "ObjectCluster", "SceneSegmentation", "segment_scene", "select", "rank_objects", "segment",
-    "color_name", "shape_name", "parse_prompt", "COLOR_NAMES", "SHAPE_NAMES",
+    "color_name", "shape_name", "parse_prompt", "COLOR_NAMES", "SHAPE_NAMES", "PromptError", "known_words",
+    "PerceptionWarning", "Track", "Tracker",
     # grasps
     "Grasp", "propose_grasps", "grasp_rotation",
+    # placing
+    "Placement", "place_poses", "Marking", "find_markings",
+    # images
+    "project", "visible", "fingertip_points", "draw_markers", "crop_image", "save_png", "encode_png",
+    # the robot's own body (self-filter)
+    "PANDA", "RobotDescription", "RobotJoint", "RobotCapsule", "RobotShapes", "link_poses", "tcp_matrix",
+    "tcp_pose", "robot_shapes", "capsule_distances", "robot_mask", "rpy_to_matrix",
 ]
 
 # Private helpers stay in their modules (``from robo_perception.voxels import _euclidean_groups``).

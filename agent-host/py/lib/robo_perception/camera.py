@@ -18,7 +18,9 @@ class CameraView:
 
     ``rgb``: (H, W, 3) uint8; ``depth``: (H, W) float32 planar depth in metres;
     ``intrinsics``: {fx, fy, cx, cy, width, height}; ``base_from_camera``: 4x4.
-    ``ee_pose``/``gripper`` (measured, optional) let segmentation ignore the robot's own hand.
+    ``ee_pose``/``gripper`` (measured, optional) let segmentation ignore the robot's own hand;
+    ``joint`` (the 7 measured arm joints, optional) lets it remove the whole robot (the self-filter
+    of `robo_perception.robot`). All three must be those the image was taken with.
     """
 
     name: str
@@ -28,6 +30,7 @@ class CameraView:
     base_from_camera: np.ndarray
     ee_pose: Optional[list] = None
     gripper: Optional[float] = None
+    joint: Optional[list] = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -71,7 +74,8 @@ def views_from_state(state: Union[Mapping[str, Any], Sequence[Any]],
                                     intrinsics=dict(s["camera_intrinsics"][name]),
                                     base_from_camera=np.asarray(s["camera_extrinsics"][name], dtype=float),
                                     ee_pose=list(s["ee_pose"]) if s.get("ee_pose") is not None else None,
-                                    gripper=g))
+                                    gripper=g,
+                                    joint=[float(q) for q in s["joint"]] if s.get("joint") is not None else None))
     if not views:
         raise ValueError("no camera with depth in the observation(s)")
     return views

@@ -99,7 +99,9 @@ def propose_grasps(obj: ObjectCluster, scene: Optional[SceneSegmentation] = None
                    plane: Optional[Plane] = None, reference_pose: Optional[ArrayLike] = None,
                    hand: HandGeometry = FRANKA_HAND, width_margin: float = 0.008,
                    plane_margin: float = 0.004, pregrasp_offset: float = 0.10, grasp_depth: float = 0.025,
-                   max_candidates: int = 20, antipodal: bool = True, seed: int = 0) -> list[Grasp]:
+                   max_candidates: int = 20, antipodal: bool = True, seed: int = 0,
+                   near: Optional[ArrayLike] = None, near_radius: float = 0.03,
+                   closing: Optional[ArrayLike] = None, closing_tolerance_deg: float = 20.0) -> list[Grasp]:
     """Grasp candidates for ``obj``, best first.
 
     Top-down: the approach is straight down the plane normal; candidate centres are the box
@@ -116,6 +118,14 @@ def propose_grasps(obj: ObjectCluster, scene: Optional[SceneSegmentation] = None
     Scores combine alignment (closing along the short side / normals opposing), centredness,
     width margin and grasp depth. ``reference_pose`` (e.g. the measured ``ee_pose``) picks the
     yaw of the two equivalent ones that turns the hand the least; default pointing down, yaw 0.
+
+    Steering: ``near`` (a base-frame point, m) keeps only grasps whose TCP lies within
+    ``near_radius`` of it, measured along the support plane (a region: the rim nearest the
+    robot, one end of a handle, the middle of a bar); ``closing`` (a base-frame direction) keeps
+    only grasps whose fingers close along it, either sign, within ``closing_tolerance_deg``.
+    Candidates are generated there and in that direction, so a steered call finds grasps an
+    unsteered one would have ranked below its ``max_candidates``. An empty list means no grasp
+    of the object satisfies the steering and the checks above.
     """
     if plane is None:
         if scene is None:
@@ -131,9 +141,9 @@ def propose_grasps(obj: ObjectCluster, scene: Optional[SceneSegmentation] = None
     if scene is not None:
         for o in scene.objects:
             if o is not obj:
-                near = np.linalg.norm(o.points[:, :2] - obj.center[:2], axis=1) < 0.25
-                if near.any():
-                    obstacles.append(voxel_downsample(o.points[near], 0.004)[0])
+                close_by = np.linalg.norm(o.points[:, :2] - obj.center[:2], axis=1) < 0.25
+                if close_by.any():
+                    obstacles.append(voxel_downsample(o.points[close_by], 0.004)[0])
     O = np.concatenate(obstacles)
     n = plane.normal
     down = -n
@@ -147,8 +157,29 @@ def propose_grasps(obj: ObjectCluster, scene: Optional[SceneSegmentation] = None
     min_tcp = plane_margin + max(hand.tip_beyond_tcp, hand.envelope_radius - hand.envelope_behind_tcp)
     rng = np.random.default_rng(seed)
     cands: list[Grasp] = []
+    near_p = None
+    if near is not None:
+        near_p = np.asarray(near, dtype=float).reshape(3)
+        if not np.all(np.isfinite(near_p)) or not near_radius > 0:
+            raise ValueError(f"near must be a finite point and near_radius > 0 (got {near}, {near_radius})")
+    close_d = None
+    if closing is not None:
+        close_d = np.asarray(closing, dtype=float).reshape(3)
+        if not np.all(np.isfinite(close_d)) or np.linalg.norm(close_d) < 1e-9:
+            raise ValueError(f"closing must be a finite non-zero direction (got {closing})")
+        close_d = close_d / np.linalg.norm(close_d)
+    cos_close = math.cos(math.radians(closing_tolerance_deg))
+
+    def steered(T: np.ndarray) -> bool:
+        if near_p is not None:
+            r = T[:3, 3] - near_p
+            if np.linalg.norm(r - np.dot(r, n) * n) > near_radius:
+                return False
+        return close_d is None or abs(float(np.dot(T[:3, 1], close_d))) >= cos_close
 
     def finish(T: np.ndarray, width: float, kind: str, score: float, details: dict) -> None:
+        if not steered(T):
+            return
         open_w = min(hand.max_width, width + 2.0 * width_margin + 0.016)
         L = (O - T[:3, 3]) @ T[:3, :3]
         if not _gripper_clear(L, open_w, hand, 0.002):
@@ -167,10 +198,17 @@ def propose_grasps(obj: ObjectCluster, scene: Optional[SceneSegmentation] = None
     B = plane.basis()
     upper = Q[hQ > 0.5 * hQ.max()]
     centres = [box.center - n * (plane.distance(box.center))]
+    if near_p is not None:
+        # sample the upper surface inside the region (and the region's centre) instead
+        r = upper - near_p
+        upper = upper[np.linalg.norm(r - np.outer(r @ n, n), axis=1) <= near_radius]
+        centres.append(near_p - n * plane.distance(near_p))
     if len(upper):
         pick = rng.choice(len(upper), size=min(24, len(upper)), replace=False)
         centres += [p - n * plane.distance(p) for p in upper[pick]]
     base_dirs = [box.axes[:, 0], box.axes[:, 1]]
+    if close_d is not None and np.linalg.norm(close_d - np.dot(close_d, n) * n) > 1e-6:
+        base_dirs.insert(0, close_d)
     for k in range(6):
         ang = k * math.pi / 6.0
         base_dirs.append(B[:, 0] * math.cos(ang) + B[:, 1] * math.sin(ang))

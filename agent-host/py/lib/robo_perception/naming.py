@@ -89,7 +89,7 @@ def color_name(rgb: ArrayLike) -> str:
     return _hsv_name(h, s, v)
 
 
-SHAPE_NAMES = ("box", "cylinder", "bowl", "plate", "flat", "object")
+SHAPE_NAMES = ("box", "cylinder", "bowl", "plate", "flat", "bar", "panel", "object")
 
 
 def shape_name(extents: ArrayLike, fill: float, hollow: bool = False, thin_fill: Optional[float] = None) -> str:
@@ -98,16 +98,22 @@ def shape_name(extents: ArrayLike, fill: float, hollow: bool = False, thin_fill:
     ``extents``: (long side, short side, height) in metres; ``fill``: hull area / rectangle area
     of the footprint (1 for a box, ~0.79 for a disc); ``hollow``: the top is lower in the middle
     than at the rim; ``thin_fill``: fill ratio of the points in the (long side, height) plane,
-    used for slabs standing on edge. Returns one of box, cylinder, bowl, plate, flat, object.
+    used for slabs standing on edge. Returns one of box, cylinder, bowl, plate, flat, bar,
+    panel, object. A *bar* is a small part much longer than it is wide (a handle, a rail, a
+    peg); a *panel* is a thin slab standing on its edge that is not round (a door, a drawer
+    front, a wall).
     """
     a, b, h = (float(x) for x in extents)
+    d = sorted((a, b, h), reverse=True)
+    if 0.04 <= d[0] <= 0.35 and d[1] <= 0.05 and d[0] >= 2.5 * d[1]:
+        return "bar"
     round_top = fill < 0.9 and b > 0.6 * a
     if h < 0.02 and a > 0.03:
         return "plate" if (round_top and b > 0.75 * a) else "flat"
     if b < 0.025 and b < 0.3 * min(a, h):      # a slab standing on its edge
         if thin_fill is not None and thin_fill < 0.9:
             return "plate"
-        return "flat"
+        return "panel" if min(a, h) >= 0.05 else "flat"
     if round_top or (fill < 0.9 and h >= 0.7 * b):
         if hollow and h < 0.8 * max(a, b):
             return "bowl"
@@ -115,3 +121,15 @@ def shape_name(extents: ArrayLike, fill: float, hollow: bool = False, thin_fill:
     if fill >= 0.9:
         return "box"
     return "object"
+
+
+def _hsv_names(hsv: np.ndarray) -> np.ndarray:
+    """`_hsv_name` for every row of an (N, 3) HSV array at once (per-pixel names)."""
+    h, s, v = hsv[:, 0], hsv[:, 1], hsv[:, 2]
+    grey = (s < 0.22) | ((v < 0.35) & (s < 0.35))
+    conds = [v < 0.16, grey & (v >= 0.92), grey & (v > 0.22), grey,
+             (h < 15) | (h >= 340), h < 45, h < 70, h < 165, h < 195, h < 255, h < 290]
+    names = ["black", "white", "grey", "black",
+             np.where(v < 0.45, "brown", "red"), np.where(v < 0.8, "brown", "orange"),
+             np.where(v < 0.5, "brown", "yellow"), "green", "cyan", "blue", "purple"]
+    return np.select(conds, [np.broadcast_to(np.asarray(n, dtype="<U6"), h.shape) for n in names], "pink")

@@ -10,6 +10,7 @@ import numpy as np
 
 from .camera import pixel_to_point
 from .naming import _color_similarity
+from .report import warn
 from .segmentation import ObjectCluster, SceneSegmentation, segment_scene
 from .transforms import ArrayLike
 
@@ -28,9 +29,32 @@ _SHAPE_WORDS = {
     "glass": "cylinder", "jar": "cylinder", "tube": "cylinder", "bowl": "bowl", "bowls": "bowl", "basin": "bowl",
     "plate": "plate", "plates": "plate", "dish": "plate", "disc": "plate", "disk": "plate", "saucer": "plate",
     "flat": "flat", "sheet": "flat", "board": "flat", "card": "flat", "pad": "flat",
+    # fixture parts, recognised by shape: a handle is a bar, a door or a drawer front a panel
+    "handle": "bar", "handles": "bar", "bar": "bar", "rail": "bar", "rod": "bar", "peg": "bar",
+    "knob": "bar", "pull": "bar", "door": "panel", "doors": "panel", "drawer": "panel",
+    "drawers": "panel", "panel": "panel", "lid": "panel", "wall": "panel",
+    "object": "any", "objects": "any", "thing": "any", "things": "any", "item": "any",
 }
 _SHAPE_RELATED = {("plate", "flat"), ("box", "flat"), ("bowl", "cylinder"), ("box", "object"),
-                  ("cylinder", "object"), ("bowl", "plate")}
+                  ("cylinder", "object"), ("bowl", "plate"), ("panel", "flat"), ("bar", "flat"),
+                  ("bar", "cylinder"), ("panel", "plate")}
+# words that carry no meaning for selection (articles, prepositions, "one")
+_FILLER_WORDS = {
+    "the", "a", "an", "one", "ones", "of", "on", "in", "at", "to", "and", "with", "its", "it", "that",
+    "this", "which", "is", "coloured", "colored", "color", "colour", "side", "part", "most",
+    "please", "pick", "grasp", "grab", "up", "shaped", "me",
+}
+
+
+class PromptError(ValueError):
+    """A prompt word `robo_perception` does not understand; the message lists the known words."""
+
+
+def known_words() -> dict:
+    """The words prompts may use, by kind: {"colors": [...], "shapes": [...], "spatial": [...],
+    "filler": [...]} (synonyms included)."""
+    return {"colors": sorted(_COLOR_WORDS), "shapes": sorted(_SHAPE_WORDS),
+            "spatial": sorted(_SPATIAL_WORDS), "filler": sorted(_FILLER_WORDS)}
 _SPATIAL_WORDS = {
     "left": "left", "leftmost": "left", "right": "right", "rightmost": "right",
     "front": "front", "forward": "front", "ahead": "front", "back": "back", "behind": "back",
@@ -45,10 +69,25 @@ _SPATIAL_WORDS = {
 
 
 def parse_prompt(prompt: str) -> dict:
-    """Split a text prompt into colour, shape and spatial words (see module docs)."""
+    """Split a text prompt into colour, shape and spatial words (see module docs).
+
+    Raises `PromptError` (a ValueError) naming every word that is none of these nor a filler
+    word such as "the" or "of", and listing the words understood: an unknown word is never
+    silently ignored (an ignored "rack" would match everything)."""
+    if not isinstance(prompt, str):
+        raise TypeError(f"the prompt must be a string, not {type(prompt).__name__}")
     words = re.findall(r"[a-z]+", prompt.lower())
+    unknown = [w for w in words if w not in _COLOR_WORDS and w not in _SHAPE_WORDS
+               and w not in _SPATIAL_WORDS and w not in _FILLER_WORDS]
+    if unknown:
+        k = known_words()
+        raise PromptError(
+            f"prompt {prompt!r}: {', '.join(repr(w) for w in unknown)} "
+            f"{'is' if len(unknown) == 1 else 'are'} not understood. Describe the object by colour, "
+            f"shape and position. Colours: {', '.join(k['colors'])}. Shapes and parts: "
+            f"{', '.join(k['shapes'])}. Position and size: {', '.join(k['spatial'])}.")
     colors = [_COLOR_WORDS[w] for w in words if w in _COLOR_WORDS]
-    shapes = [_SHAPE_WORDS[w] for w in words if w in _SHAPE_WORDS]
+    shapes = [_SHAPE_WORDS[w] for w in words if w in _SHAPE_WORDS and _SHAPE_WORDS[w] != "any"]
     spatial = [_SPATIAL_WORDS[w] for w in words if w in _SPATIAL_WORDS]
     if "dark" in words and len(colors) > 1:
         colors = [c for c in colors if c != "black"]
@@ -76,9 +115,9 @@ def _spatial_key(word: str, objs: list, origin: np.ndarray) -> np.ndarray:
     if word == "smallest":
         return -size
     if word == "tallest":
-        return np.array([o.height for o in objs])
+        return np.array([o.top for o in objs])
     if word == "lowest":
-        return -np.array([o.height for o in objs])
+        return -np.array([o.top for o in objs])
     if word == "middle":
         return -np.abs(c[:, 1] - np.median(c[:, 1]))
     return np.zeros(len(objs))
@@ -168,7 +207,14 @@ def select(scene: SceneSegmentation, prompt: Optional[str] = None, point: Option
         return best
     if prompt:
         r = rank_objects(scene, prompt, origin)
-        return r[0][0] if r else None
+        if not r:
+            return None
+        tied = [o for o, sc in r if sc >= r[0][1] - 1e-9]
+        if len(tied) > 1 and not parse_prompt(prompt)["spatial"]:
+            warn(f"select({prompt!r}) is ambiguous: {len(tied)} objects fit equally well ("
+                 + "; ".join(o.describe() for o in tied[:4]) + f"); returning #{r[0][0].id}, the one seen best. "
+                 "Add a colour, shape or position word (left, nearest, largest, ...).", scene)
+        return r[0][0]
     if not scene.objects:
         return None
     return max(scene.objects, key=lambda o: o.size)

@@ -4,6 +4,7 @@ names, mask growing)."""
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Optional, Sequence, Union
@@ -14,6 +15,9 @@ from .camera import CameraView, depth_to_points, views_from_state
 from .geometry import OrientedBox, Plane, fit_plane_ransac, min_area_rect, obb_in_plane, obb_pca
 from .hand import FRANKA_HAND, HandGeometry, gripper_to_width
 from .naming import color_name, shape_name
+from .report import warn
+from .robot import robot_mask
+from .tracking import default_tracker
 from .transforms import pose_to_matrix
 from .voxels import _connected_components, _euclidean_groups
 
@@ -26,9 +30,21 @@ class ObjectCluster:
     mean; ``center``: centre of the support-plane box (the box is extended down to the plane when
     the object rests on it, so this estimates the object's geometric centre); ``obb``: that box
     (axes: long side, short side, plane normal); ``obb_pca``: PCA box of the visible points;
-    ``masks``: {camera: (H, W) bool}; ``height``/``bottom``: highest/lowest point above the
-    support plane; ``held``: it lies between the (measured) fingers; ``point_camera``: index of
-    the view each point came from, ``camera_origins``: those views' centres (for normals).
+    ``masks``: {camera: (H, W) bool}; ``point_camera``: index of the view each point came from,
+    ``camera_origins``: those views' centres (for normals).
+
+    Heights are metres above the support plane, along its normal: ``top`` the highest point,
+    ``bottom`` the lowest one seen (at least the 5 mm cut for an object resting on the plane);
+    ``height`` the object's own vertical size (the box's third side: from the plane to the top
+    for a resting object, top minus bottom for a lifted one). ``dims``: the box's sides (long,
+    short, vertical), m; ``size``: its volume, m^3 (sides counted as at least 1 cm).
+
+    ``held``: the robot holds it, from evidence (``held_evidence``): the measured gripper stopped
+    between open and closed, and the object is between or right beside the finger pads, or hangs
+    lifted off the plane next to the TCP, or (with a tracker) moved with the TCP since the last
+    observation. ``track_id``: its number for the whole episode when a tracker is in use (the
+    names then stay those of the first sighting; ``seen_as`` is what this observation alone
+    would have called it).
     """
 
     id: int
@@ -49,6 +65,15 @@ class ObjectCluster:
     held: bool = False
     point_camera: Optional[np.ndarray] = None
     camera_origins: Optional[np.ndarray] = None
+    top: float = 0.0
+    held_evidence: dict = field(default_factory=dict)
+    track_id: Optional[int] = None
+    seen_as: str = ""
+
+    @property
+    def dims(self) -> np.ndarray:
+        """The support-plane box's sides (long, short, vertical), m."""
+        return self.obb.extents
 
     @property
     def extents(self) -> np.ndarray:
@@ -63,8 +88,9 @@ class ObjectCluster:
         c = self.center
         e = self.obb.extents
         held = " (held)" if self.held else ""
-        return (f"#{self.id} {self.color_name} {self.shape_name}{held} at ({c[0]:.3f}, {c[1]:.3f}, {c[2]:.3f}) "
-                f"size {e[0]:.3f}x{e[1]:.3f}x{e[2]:.3f} m, {len(self.points)} pts")
+        ident = f"#{self.id}" if self.track_id is None else f"#{self.id} track {self.track_id}"
+        return (f"{ident} {self.color_name} {self.shape_name}{held} at ({c[0]:.3f}, {c[1]:.3f}, {c[2]:.3f}) "
+                f"size {e[0]:.3f}x{e[1]:.3f}x{e[2]:.3f} m, top {self.top:.3f} m, {len(self.points)} pts")
 
 
 @dataclass
@@ -77,6 +103,8 @@ class SceneSegmentation:
     views: list
     timings_ms: dict
     plane_masks: dict
+    warnings: list = field(default_factory=list)
+    unseen: list = field(default_factory=list)
 
     def by_id(self, i: int) -> Optional[ObjectCluster]:
         for o in self.objects:
@@ -89,6 +117,9 @@ class SceneSegmentation:
         lines = [f"plane n=({n[0]:.3f},{n[1]:.3f},{n[2]:.3f}) z0={self.plane.height_at_origin:.4f} "
                  f"({self.timings_ms.get('total', 0):.0f} ms)"]
         lines += ["  " + o.describe() for o in self.objects]
+        lines += [f"  unseen now: track {t.id} {t.color_name} {t.shape_name}, last at "
+                  f"({t.center[0]:.3f}, {t.center[1]:.3f}, {t.center[2]:.3f})" for t in self.unseen]
+        lines += ["  warning: " + w for w in self.warnings]
         return "\n".join(lines)
 
 
@@ -208,15 +239,17 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
                   min_height: float = 0.005, max_object_height: float = 0.35,
                   min_points: int = 40, max_depth: float = 2.5, ignore_hand: bool = True,
                   hand: HandGeometry = FRANKA_HAND, plane: Optional[Plane] = None,
-                  grow_masks: bool = True) -> SceneSegmentation:
+                  grow_masks: bool = True, tracker: Any = "auto") -> SceneSegmentation:
     """Segment the objects standing on the support plane.
 
     ``observations``: a raw ``get_state(..., raw=True)`` dict, a list of them, or CameraViews.
     Every camera with depth is used (``cameras`` restricts the names) and the clouds are fused.
 
     Steps: back-project -> RANSAC support plane (normal near base +z) -> keep points between
-    ``min_height`` and 1 m above it, within the plane's footprint -> drop the robot's own hand
-    (from ``ee_pose``/``gripper`` in the state) -> voxel grid of side ``voxel`` ->
+    ``min_height`` and 1 m above it, within the plane's footprint -> with ``ignore_hand`` (the
+    self-filter switch), drop the points on the robot: the whole arm and hand posed from the
+    measured ``joint``/``gripper`` of each view (`robo_perception.robot.robot_mask`), or without
+    joints only the hand near ``ee_pose`` -> voxel grid of side ``voxel`` ->
     26-connected components over occupied voxels (Euclidean clustering) -> a cluster whose
     chromaticities (r, g shares, so shading does not matter) form several dense modes at least
     ``color_split`` apart is split by colour and re-clustered per colour (None: no split) ->
@@ -224,7 +257,12 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
     (the arm), are dropped -> per cluster: masks, boxes, colour and shape names -> with
     ``grow_masks``, each image mask grows over the adjacent pixels of the object's colour that
     the height cut gave to the plane (a bowl's inner floor, the bottom millimetres of a side);
-    the cluster's 3D points stay those above the cut.
+    the cluster's 3D points stay those above the cut -> ``held`` from evidence -> the support
+    plane is checked for plausibility (tilted more than 8 deg, carried by few points, or more
+    than 2 cm from the last one the tracker saw: a `PerceptionWarning`, also kept in
+    ``scene.warnings``) -> with a tracker, identities and names carried over (see
+    `robo_perception.tracking`). ``tracker``: "auto" (the file named by $R2G_PERCEPTION_TRACKS,
+    as in the sandbox, else none), a `Tracker`, or None.
     """
     t0 = time.perf_counter()
     views = views_from_state(observations, cameras)
@@ -261,9 +299,11 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
     keep &= np.all((Q2 >= lo) & (Q2 <= hi), axis=1)
     if ignore_hand:
         for ci, v in enumerate(views):
-            if v.ee_pose is not None:
-                # each observation carries the hand pose it was taken with
-                sel = np.flatnonzero(keep & (pcam == ci))
+            # each observation carries the joints (or at least the hand pose) it was taken with
+            sel = np.flatnonzero(keep & (pcam == ci))
+            if v.joint is not None:  # self-filter: the whole robot, posed from the measured joints
+                keep[sel[robot_mask(P[sel], v.joint, v.gripper)]] = False
+            elif v.ee_pose is not None:  # fallback: the hand near the TCP only
                 keep[sel[_hand_exclusion(P[sel], v.ee_pose, v.gripper, hand)]] = False
     sel = np.flatnonzero(keep)
     Po, ho = P[sel], h[sel]
@@ -288,24 +328,80 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
                 if float(ho[part].max()) > max_object_height:
                     continue  # reaches up out of the workspace of objects: the robot arm
                 pieces.append(part)
-    held_flags = [False] * len(pieces)
     hand_view = next((v for v in views if v.ee_pose is not None), None)
     if ignore_hand and hand_view is not None and pieces:
-        pieces, held_flags = _merge_held(pieces, Po, Co, hand_view, hand)
-    for part, held in zip(pieces, held_flags):
-        o = _make_cluster(len(objects), Po[part], Co[part], ho[part], sel[part], pidx, pcam, views, plane)
-        o.held = held
-        objects.append(o)
+        pieces, _ = _merge_held(pieces, Po, Co, hand_view, hand)
+    for part in pieces:
+        objects.append(_make_cluster(len(objects), Po[part], Co[part], ho[part], sel[part], pidx, pcam, views, plane))
     objects.sort(key=lambda o: -len(o.points))
     for k, o in enumerate(objects):
         o.id = k
     if grow_masks and objects:
         _grow_masks(objects, views, h, pidx, pcam, plane_threshold, min_height, color_split or 0.06)
+    for o in objects:
+        _held_evidence(o, hand_view, plane, hand)
+    scene_warnings = _plane_warnings(plane, on_plane)
     t4 = time.perf_counter()
     timings = {"backproject": 1e3 * (t1 - t0), "plane": 1e3 * (t2 - t1), "filter": 1e3 * (t3 - t2),
                "cluster": 1e3 * (t4 - t3), "total": 1e3 * (t4 - t0)}
-    return SceneSegmentation(plane=plane, objects=objects, views=views, timings_ms=timings,
-                             plane_masks=plane_masks)
+    scene = SceneSegmentation(plane=plane, objects=objects, views=views, timings_ms=timings,
+                              plane_masks=plane_masks)
+    if tracker == "auto":
+        tracker = default_tracker()
+    if tracker is not None:
+        states = [observations] if isinstance(observations, Mapping) else (
+            list(observations) if isinstance(observations, Sequence) else [])
+        stamps = [float(s["timestamp"]) for s in states if isinstance(s, Mapping) and "timestamp" in s]
+        prev = tracker.plane
+        if prev is not None and stamps and tracker.time <= max(stamps):
+            z_prev = -prev[3] / prev[2] if abs(prev[2]) > 1e-6 else 0.0
+            if abs(plane.height_at_origin - z_prev) > 0.02:
+                scene_warnings.append(f"the support plane (z0 = {plane.height_at_origin:.3f} m) is "
+                                      f"{abs(plane.height_at_origin - z_prev) * 100:.1f} cm from the last one "
+                                      f"(z0 = {z_prev:.3f} m): check the cameras' views before trusting objects")
+        if not scene_warnings:
+            tracker.plane = [*map(float, plane.normal), float(plane.offset)]
+        tracker.update(scene, max(stamps) if stamps else None, hand_view.ee_pose if hand_view is not None else None)
+    for w in scene_warnings:
+        warn(w, scene)
+    return scene
+
+
+def _plane_warnings(plane: Plane, on_plane: np.ndarray) -> list:
+    """Why the fitted support plane might not be the table: tilted, or carried by few points."""
+    out = []
+    tilt = math.degrees(math.acos(min(1.0, abs(float(plane.normal[2])))))
+    if tilt > 8.0:
+        out.append(f"the support plane is tilted {tilt:.0f} deg from horizontal (normal "
+                   f"{np.round(plane.normal, 3).tolist()}, z0 = {plane.height_at_origin:.3f} m): probably not the "
+                   "table (a camera facing sideways?); objects may be missing or wrong")
+    frac = float(on_plane.mean()) if len(on_plane) else 0.0
+    if frac < 0.05:
+        out.append(f"only {100 * frac:.1f} % of the points lie on the support plane: the table may be out of view")
+    return out
+
+
+def _held_evidence(o: ObjectCluster, view: Optional[CameraView], plane: Plane, hand: HandGeometry) -> None:
+    """Fill ``o.held_evidence`` and ``o.held`` from the measured gripper and the points near the
+    pads (see ObjectCluster)."""
+    ev: dict = {"gripper_closed_on_something": False, "between_pads": 0, "lifted_near_tcp": False,
+                "moves_with_tcp": None}
+    o.held_evidence = ev
+    o.held = False
+    if view is None or view.ee_pose is None or view.gripper is None:
+        return
+    g = float(view.gripper)
+    # the fingers left the fully open stop and did not meet: something stopped them
+    ev["gripper_closed_on_something"] = bool(-0.92 < g < 0.97)
+    T = pose_to_matrix(view.ee_pose)
+    L = (o.points - T[:3, 3]) @ T[:3, :3]
+    half = 0.5 * gripper_to_width(g, hand)
+    zone = ((np.abs(L[:, 0]) <= hand.finger_half_depth + 0.02) & (np.abs(L[:, 1]) <= half + 0.012)
+            & (L[:, 2] >= -0.07) & (L[:, 2] <= hand.tip_beyond_tcp + 0.02))
+    ev["between_pads"] = int(zone.sum())
+    near = float(np.min(np.linalg.norm(o.points - T[:3, 3], axis=1))) if len(o.points) else math.inf
+    ev["lifted_near_tcp"] = bool(o.bottom > 0.012 and near < 0.04)
+    o.held = bool(ev["gripper_closed_on_something"] and (ev["between_pads"] >= 5 or ev["lifted_near_tcp"]))
 
 
 def _grow_masks(objects: list, views: list, h: np.ndarray, pidx: np.ndarray, pcam: np.ndarray,
@@ -385,5 +481,5 @@ def _make_cluster(k: int, P: np.ndarray, C: np.ndarray, h: np.ndarray, gsel: np.
     shape = shape_name(box.extents, fill, hollow, thin_fill)
     return ObjectCluster(id=k, points=P, colors=C, centroid=P.mean(axis=0), center=box.center, obb=box,
                          obb_pca=pca, color_name=color_name(C), shape_name=shape, masks=masks, fill=fill,
-                         hollow=hollow, height=top, bottom=float(h.min()), pixel_count=counts,
+                         hollow=hollow, height=float(hh), bottom=float(h.min()), top=top, pixel_count=counts,
                          point_camera=pcam[gsel].copy(), camera_origins=np.array([v.origin for v in views]))
