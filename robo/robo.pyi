@@ -25,7 +25,8 @@ class ControlFeedback(TypedDict):
     reason: str
     """Why, naming the field, waypoint, limit and excess; "" when nothing went wrong."""
     executed: int
-    """Waypoints completed."""
+    """Waypoints completed; with `not reached:`, the waypoints commanded (the arm may have been
+    stopped well before the last of them: the reason gives the measured error)."""
     request_id: int
     final_joint_error_rad: float
     """Largest joint distance from the last target when the chunk ended."""

@@ -22,7 +22,11 @@ pub fn seed(scratch: &Path, memory_dir: &Path) -> anyhow::Result<()> {
         Err(_) => {}
     }
     std::fs::create_dir(&dst)?;
-    for e in rd.flatten().filter(|e| e.file_type().is_ok_and(|t| t.is_file())) {
+    // records only (`<timestamp>-<uuid>.json` or `.md`): not the folder's README or anything else
+    let records = rd
+        .flatten()
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_file()) && is_record_name(&e.file_name().to_string_lossy()));
+    for e in records {
         let Ok(body) = std::fs::read(e.path()) else { continue };
         let out = std::fs::OpenOptions::new()
             .write(true)
@@ -34,6 +38,15 @@ pub fn seed(scratch: &Path, memory_dir: &Path) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// A record's file name as robot-skill/memory/README.md gives it: `<UTC timestamp>-<uuid4>`
+/// with `.json` or `.md`, so it starts with a digit (the folder's README is no record).
+fn is_record_name(name: &str) -> bool {
+    name.len() < 120
+        && name.starts_with(|c: char| c.is_ascii_digit())
+        && name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+        && (name.ends_with(".json") || name.ends_with(".md"))
 }
 
 /// Copies new memory records the worker wrote under `scratch/memory/` to the memory folder,
@@ -53,12 +66,8 @@ pub fn collect(scratch: &Path, memory_dir: &Path, taken: &mut usize) -> Vec<Stri
             break;
         }
         let name = e.file_name().to_string_lossy().into_owned();
-        let ok_name = name.len() < 120
-            && !name.starts_with('.')
-            && name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
-            && (name.ends_with(".json") || name.ends_with(".md"));
         let dst = memory_dir.join(&name);
-        if !ok_name || dst.exists() {
+        if !is_record_name(&name) || dst.exists() {
             continue;
         }
         let Ok(mut f) =

@@ -73,7 +73,8 @@ enum Cmd {
         /// Refuse reset and post_actions (an observation-only turn).
         #[arg(long)]
         observe_only: bool,
-        /// Scratch folder (default: a new one under runs/exec/).
+        /// Scratch folder (default: a new one under runs/exec/). Reuse one across the stage
+        /// programs of an episode to keep its files and robo_perception's object identities.
         #[arg(long)]
         scratch: Option<std::path::PathBuf>,
         /// Memory folder (e.g. robot-skill/memory): its records are copied into the scratch

@@ -38,10 +38,11 @@ CAMERAS = ["agentview", "wrist"]
 os.environ.setdefault("R2G_PERCEPTION_TRACKS", os.path.join(tempfile.mkdtemp(prefix="place-tracks-"), "tracks.json"))
 
 
-def settle(steps=10):
-    """Hold the measured pose for `steps` waypoints (0.5 s at 20 Hz) so the scene comes to rest."""
-    s = get_state([])
-    post_actions({"type": "ee_pose", "freq": "", "actions": rp.waypoints([s["ee_pose"]] * steps, s["gripper"][0])})
+def settle(gripper, steps=10):
+    """Hold the measured pose for `steps` waypoints (0.5 s at 20 Hz) so the scene comes to rest,
+    commanding `gripper` (the last value sent, never the measured one)."""
+    here = get_state([])["ee_pose"]
+    post_actions({"type": "ee_pose", "freq": "", "actions": rp.waypoints([here] * steps, gripper)})
 
 
 def main():
@@ -112,7 +113,7 @@ def main():
     here = get_state([])["ee_pose"]
     move([here] * 10, -1.0, "open")
     move(path_to([*here[:2], pl.retreat[2], *here[3:]], max_m=0.02), -1.0, "retreat")
-    settle()
+    settle(-1.0)
 
     # 5. verify from fresh observations
     state = get_state(CAMERAS, raw=True)

@@ -41,10 +41,12 @@ import mujoco  # noqa: E402
 
 
 class LiveGym:
-    """One `r2g up` process, stopped with SIGTERM to its own pid."""
+    """One `r2g up` process, stopped with SIGTERM to its own pid. `use` points this process's
+    `robo` at it; `stop` points it back where it pointed before (a fixture's instance)."""
 
     def __init__(self, r2g: Path, gyms_dir: Path, gym: str, trace_dir: Optional[Path] = None, tag: str = "g"):
         self.gym = gym
+        self.previous_instance = os.environ.get("R2G_INSTANCE")
         self.instance = f"{tag}{os.getpid()}_{gym}"
         self.scene_path = gyms_dir / gym / "scene.toml"
         self.scene = tomllib.loads(self.scene_path.read_text())
@@ -70,6 +72,11 @@ class LiveGym:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
+        if os.environ.get("R2G_INSTANCE") == self.instance:
+            if self.previous_instance is None:
+                os.environ.pop("R2G_INSTANCE", None)
+            else:
+                os.environ["R2G_INSTANCE"] = self.previous_instance
 
     def use(self) -> None:
         os.environ["R2G_INSTANCE"] = self.instance

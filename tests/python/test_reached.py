@@ -168,4 +168,26 @@ def test_open_drawer_chunks_return_0_with_what_blocked_them(tmp_path) -> None:
         mm = float(f["reason"].split("stopped ")[1].split(" mm")[0])
         assert mm > 5.0, f["reason"]
     finally:
-        g.stop()
+        g.stop()   # also points robo back at the lockstep fixture's instance
+
+
+def test_a_joint_chunk_to_the_edge_of_the_limits_executes_and_one_past_is_rejected(lockstep) -> None:
+    """Nothing that is reached is reported as failed: joint 7 sent to exactly its limit minus the
+    margin ends `executed`; a target 1 mrad further is refused before anything moves, naming the
+    joint."""
+    assert robo.reset() == 1
+    s = robo.get_state([])
+    home, safety = s["joint"], s["effective_safety"]
+    edge = safety["joint_position_max_rad"][6] - safety["joint_position_margin_rad"]
+    target = home[:6] + [edge]
+    assert robo.post_actions({"actions": joint_line(home, target, -1.0, 40), "type": "joint", "freq": ""}) == 1, \
+        feedback()
+    f = feedback()
+    assert f["status"] == "executed" and f["final_joint_error_rad"] <= 0.005, f
+    assert abs(robo.get_state([])["joint"][6] - edge) <= 0.005
+    past = home[:6] + [edge + 0.001]
+    here = robo.get_state([])["joint"]
+    assert robo.post_actions({"actions": joint_line(here, past, -1.0, 2), "type": "joint", "freq": ""}) == 0
+    f = feedback()
+    assert f["status"] == "rejected" and "joint 7" in f["reason"], f
+    assert max(abs(a - b) for a, b in zip(here, robo.get_state([])["joint"])) < 1e-6

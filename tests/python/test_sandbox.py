@@ -108,6 +108,7 @@ def test_exec_keeps_memory_only_when_asked(gym, tmp_path: Path) -> None:
     memory.mkdir()
     old = memory / "20250101T000000Z-00000000-0000-4000-8000-000000000000.json"
     old.write_text('{"kind": "observation", "content": "old"}')
+    (memory / "README.md").write_text("the folder's own documentation, not a record")
     prog = tmp_path / "mem.py"
     prog.write_text(
         "import os, pathlib\n"
@@ -125,12 +126,12 @@ def test_exec_keeps_memory_only_when_asked(gym, tmp_path: Path) -> None:
     assert f"present True ['{old.name}']" in r["stdout"], r["stdout"]
     assert r["memory_added"] == ["20250102T000000Z-11111111-1111-4111-8111-111111111111.json"], r
     assert old.read_text() == '{"kind": "observation", "content": "old"}'  # append-only
-    assert sorted(p.name for p in memory.iterdir()) == [old.name, r["memory_added"][0]]
+    assert sorted(p.name for p in memory.iterdir()) == [old.name, r["memory_added"][0], "README.md"]
     # Without --memory: no memory/ in the scratch folder, nothing collected.
     out = subprocess.run([*base, "--scratch", str(tmp_path / "s2")], capture_output=True, text=True, timeout=120)
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["exit"] == "ok" and "present False []" in r["stdout"] and "memory_added" not in r, r
-    assert len(list(memory.iterdir())) == 2
+    assert len(list(memory.iterdir())) == 3
 
 
 def test_exec_memory_ignores_a_link_planted_in_a_reused_scratch(gym, tmp_path: Path) -> None:
@@ -168,6 +169,8 @@ def test_exec_programs_of_one_scratch_share_object_identities(gym, tmp_path: Pat
         "sc = rp.segment_scene(s)\n"
         "print('file', os.path.basename(os.environ.get('R2G_PERCEPTION_TRACKS', '')))\n"
         "print('ids', sorted((o.track_id, o.color_name, o.shape_name) for o in sc.objects))\n"
+        "from robo_perception.tracking import default_tracker\n"
+        "print('seen', sorted({t.seen for t in default_tracker().tracks}))\n"
     )
     base = [str(R2G), "exec", str(prog), "--instance", gym.name, "--wall-s", "30", "--scratch", str(tmp_path / "s")]
     runs = [json.loads(subprocess.run(base, capture_output=True, text=True, timeout=120).stdout.strip().splitlines()[-1])
@@ -177,4 +180,32 @@ def test_exec_programs_of_one_scratch_share_object_identities(gym, tmp_path: Pat
         assert "file .perception-tracks.json" in r["stdout"], r["stdout"]
     ids = [next(line for line in r["stdout"].splitlines() if line.startswith("ids")) for r in runs]
     assert ids[0] == ids[1] and "None" not in ids[0] and "(0," in ids[0], ids
+    # the second program continued the first one's tracks (a fresh tracker would say seen [1])
+    assert "seen [1]" in runs[0]["stdout"] and "seen [2]" in runs[1]["stdout"], [r["stdout"] for r in runs]
     assert (tmp_path / "s" / ".perception-tracks.json").is_file()
+
+
+def test_exec_program_draws_markers_and_saves_png_crops(gym, tmp_path: Path) -> None:
+    """The documented way to mark points and save an enlarged crop (api/PERCEPTION.md, "Images")
+    works inside the sandbox: no image library, no chmod, files land in the scratch folder."""
+    prog = tmp_path / "png.py"
+    prog.write_text(
+        "from robo import get_state\n"
+        "import robo_perception as rp\n"
+        "s = get_state(['agentview', 'wrist'], raw=True)\n"
+        "tips = rp.fingertip_points(s['ee_pose'], s['gripper'])\n"
+        "for cam in ('agentview', 'wrist'):\n"
+        "    img, drawn = rp.draw_markers(s['image'][cam], tips, s, cam, color=['red', 'blue'], shape='circle')\n"
+        "    (u, v), = rp.project(tips.mean(axis=0), s, cam)[0]\n"
+        "    print(cam, rp.save_png(f'{cam}_tips.png', img, crop=(u - 80, v - 60, u + 80, v + 60), scale=3))\n"
+    )
+    scratch = tmp_path / "s"
+    r = json.loads(subprocess.run([str(R2G), "exec", str(prog), "--instance", gym.name, "--wall-s", "30",
+                                   "--scratch", str(scratch)], capture_output=True, text=True,
+                                  timeout=120).stdout.strip().splitlines()[-1])
+    assert r["exit"] == "ok" and not r.get("violation"), r
+    for cam in ("agentview", "wrist"):
+        data = (scratch / f"{cam}_tips.png").read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 1000
+        # 160 x 120 crop, 3x: the IHDR chunk says 480 x 360
+        assert int.from_bytes(data[16:20], "big") == 480 and int.from_bytes(data[20:24], "big") == 360

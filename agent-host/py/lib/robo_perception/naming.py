@@ -105,7 +105,7 @@ def shape_name(extents: ArrayLike, fill: float, hollow: bool = False, thin_fill:
     """
     a, b, h = (float(x) for x in extents)
     d = sorted((a, b, h), reverse=True)
-    if 0.04 <= d[0] <= 0.35 and d[1] <= 0.05 and d[0] >= 2.5 * d[1]:
+    if 0.04 <= d[0] <= 0.25 and d[1] <= 0.05 and d[2] <= 0.025 and d[0] >= 2.5 * d[1]:
         return "bar"
     round_top = fill < 0.9 and b > 0.6 * a
     if h < 0.02 and a > 0.03:

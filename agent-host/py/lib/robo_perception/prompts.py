@@ -40,10 +40,15 @@ _SHAPE_RELATED = {("plate", "flat"), ("box", "flat"), ("bowl", "cylinder"), ("bo
                   ("bar", "cylinder"), ("panel", "plate")}
 # words that carry no meaning for selection (articles, prepositions, "one")
 _FILLER_WORDS = {
-    "the", "a", "an", "one", "ones", "of", "on", "in", "at", "to", "and", "with", "its", "it", "that",
+    "the", "a", "an", "one", "ones", "at", "to", "and", "its", "it", "that",
     "this", "which", "is", "coloured", "colored", "color", "colour", "side", "part", "most",
     "please", "pick", "grasp", "grab", "up", "shaped", "me",
 }
+
+
+# words that relate the object to another one ("the handle of the drawer", "the block on the
+# plate"): what follows describes the other object, which selection does not use
+_RELATION_WORDS = {"of", "on", "onto", "in", "inside", "into", "with", "under", "beside", "from", "by", "next"}
 
 
 class PromptError(ValueError):
@@ -54,7 +59,8 @@ def known_words() -> dict:
     """The words prompts may use, by kind: {"colors": [...], "shapes": [...], "spatial": [...],
     "filler": [...]} (synonyms included)."""
     return {"colors": sorted(_COLOR_WORDS), "shapes": sorted(_SHAPE_WORDS),
-            "spatial": sorted(_SPATIAL_WORDS), "filler": sorted(_FILLER_WORDS)}
+            "spatial": sorted(_SPATIAL_WORDS), "relations": sorted(_RELATION_WORDS),
+            "filler": sorted(_FILLER_WORDS)}
 _SPATIAL_WORDS = {
     "left": "left", "leftmost": "left", "right": "right", "rightmost": "right",
     "front": "front", "forward": "front", "ahead": "front", "back": "back", "behind": "back",
@@ -78,7 +84,7 @@ def parse_prompt(prompt: str) -> dict:
         raise TypeError(f"the prompt must be a string, not {type(prompt).__name__}")
     words = re.findall(r"[a-z]+", prompt.lower())
     unknown = [w for w in words if w not in _COLOR_WORDS and w not in _SHAPE_WORDS
-               and w not in _SPATIAL_WORDS and w not in _FILLER_WORDS]
+               and w not in _SPATIAL_WORDS and w not in _FILLER_WORDS and w not in _RELATION_WORDS]
     if unknown:
         k = known_words()
         raise PromptError(
@@ -86,12 +92,18 @@ def parse_prompt(prompt: str) -> dict:
             f"{'is' if len(unknown) == 1 else 'are'} not understood. Describe the object by colour, "
             f"shape and position. Colours: {', '.join(k['colors'])}. Shapes and parts: "
             f"{', '.join(k['shapes'])}. Position and size: {', '.join(k['spatial'])}.")
-    colors = [_COLOR_WORDS[w] for w in words if w in _COLOR_WORDS]
-    shapes = [_SHAPE_WORDS[w] for w in words if w in _SHAPE_WORDS and _SHAPE_WORDS[w] != "any"]
+    # the object is named before the first relation word; its noun is the last shape word there
+    # ("drawer handle" -> handle); colour and shape words after it describe another object
+    cut = next((i for i, w in enumerate(words) if w in _RELATION_WORDS), len(words))
+    head, rest = words[:cut], words[cut:]
+    colors = [_COLOR_WORDS[w] for w in head if w in _COLOR_WORDS]
+    nouns = [_SHAPE_WORDS[w] for w in head if w in _SHAPE_WORDS]
+    shapes = [nouns[-1]] if nouns and nouns[-1] != "any" else []
     spatial = [_SPATIAL_WORDS[w] for w in words if w in _SPATIAL_WORDS]
-    if "dark" in words and len(colors) > 1:
+    if "dark" in head and len(colors) > 1:
         colors = [c for c in colors if c != "black"]
-    return {"colors": colors, "shapes": shapes, "spatial": spatial, "words": words}
+    context = [w for w in rest if w in _COLOR_WORDS or w in _SHAPE_WORDS]
+    return {"colors": colors, "shapes": shapes, "spatial": spatial, "words": words, "context": context}
 
 
 def _spatial_key(word: str, objs: list, origin: np.ndarray) -> np.ndarray:
@@ -207,6 +219,10 @@ def select(scene: SceneSegmentation, prompt: Optional[str] = None, point: Option
         return best
     if prompt:
         r = rank_objects(scene, prompt, origin)
+        context = parse_prompt(prompt)["context"]
+        if context:
+            warn(f"select({prompt!r}): relations to other objects are not understood; "
+                 f"{' '.join(context)!r} was not used. Select each object by its own words.", scene)
         if not r:
             return None
         tied = [o for o, sc in r if sc >= r[0][1] - 1e-9]

@@ -174,11 +174,13 @@ def link_poses(joints: Sequence[float], gripper: Optional[float] = None,
                robot: RobotDescription = PANDA) -> dict[str, np.ndarray]:
     """Forward kinematics: each link's 4x4 pose in the base frame from the measured arm joints
     (``state["joint"]``, rad) and the gripper value (``state["gripper"][0]``, -1 open ... +1
-    closed; None: fully open)."""
+    closed, or the list ``state["gripper"]``; None: fully open)."""
     q = [float(v) for v in joints]
     if len(q) != len(robot.arm_joints):
         raise ValueError(f"expected {len(robot.arm_joints)} joint values, got {len(q)}")
     values: dict[str, float] = dict(zip(robot.arm_joints, q))
+    if isinstance(gripper, (list, tuple, np.ndarray)):   # state["gripper"] is a one-element list
+        gripper = float(np.asarray(gripper, dtype=float).ravel()[0])
     half = 0.5 * gripper_to_width(-1.0 if gripper is None else gripper, robot.hand)
     for f in robot.finger_joints:
         values[f] = half

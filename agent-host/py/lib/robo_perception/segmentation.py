@@ -14,9 +14,9 @@ import numpy as np
 from .camera import CameraView, depth_to_points, views_from_state
 from .geometry import OrientedBox, Plane, fit_plane_ransac, min_area_rect, obb_in_plane, obb_pca
 from .hand import FRANKA_HAND, HandGeometry, gripper_to_width
-from .naming import color_name, shape_name
+from .naming import _color_similarity, color_name, shape_name
 from .report import warn
-from .robot import robot_mask
+from .robot import PANDA, RobotDescription, robot_mask
 from .tracking import default_tracker
 from .transforms import pose_to_matrix
 from .voxels import _connected_components, _euclidean_groups
@@ -200,6 +200,37 @@ def _color_modes(chroma: np.ndarray, bin_size: float, min_points: int) -> Option
     return np.argmin(d, axis=1)
 
 
+def _absorb_fragments(parts: list, P: np.ndarray, C: np.ndarray, voxel: float) -> list:
+    """After a colour split: a fragment (under 400 points and under 15 % of the largest piece)
+    whose colour is the same as or next to that of a larger touching piece joins it (a shaded
+    strip of an orange bowl inside a blue one is "brown", not another object); one under 150
+    points that joins nothing is dropped (mixed pixels where two objects meet, not an object)."""
+    if len(parts) < 2:
+        return parts
+    sizes = [len(p) for p in parts]
+    big = max(sizes)
+    names = [color_name(C[p]) for p in parts]
+    out = list(parts)
+    for i in sorted(range(len(parts)), key=lambda k: sizes[k]):
+        if not (sizes[i] < 400 and sizes[i] < 0.15 * big) or out[i] is None:
+            continue
+        best, bd = None, 2.0 * voxel
+        frag = P[out[i]]
+        for j, other in enumerate(out):
+            if j == i or other is None or len(other) <= sizes[i] or _color_similarity(names[i], names[j]) == 0.0:
+                continue
+            sub = P[other][:: max(1, len(other) // 4000)]
+            d = float(np.min(np.linalg.norm(frag[:: max(1, len(frag) // 200), None, :] - sub[None, :, :], axis=2)))
+            if d < bd:
+                best, bd = j, d
+        if best is not None:
+            out[best] = np.concatenate([out[best], out[i]])
+            out[i] = None
+        elif sizes[i] < 150:
+            out[i] = None
+    return [p for p in out if p is not None]
+
+
 def _merge_held(pieces: list, P: np.ndarray, C: np.ndarray, view: CameraView, hand: HandGeometry
                 ) -> tuple[list, list]:
     """Flag the pieces lying between the fingers and merge those of the same colour (a held
@@ -239,7 +270,8 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
                   min_height: float = 0.005, max_object_height: float = 0.35,
                   min_points: int = 40, max_depth: float = 2.5, ignore_hand: bool = True,
                   hand: HandGeometry = FRANKA_HAND, plane: Optional[Plane] = None,
-                  grow_masks: bool = True, tracker: Any = "auto") -> SceneSegmentation:
+                  grow_masks: bool = True, tracker: Any = "auto", robot: RobotDescription = PANDA
+                  ) -> SceneSegmentation:
     """Segment the objects standing on the support plane.
 
     ``observations``: a raw ``get_state(..., raw=True)`` dict, a list of them, or CameraViews.
@@ -262,7 +294,8 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
     than 2 cm from the last one the tracker saw: a `PerceptionWarning`, also kept in
     ``scene.warnings``) -> with a tracker, identities and names carried over (see
     `robo_perception.tracking`). ``tracker``: "auto" (the file named by $R2G_PERCEPTION_TRACKS,
-    as in the sandbox, else none), a `Tracker`, or None.
+    as in the sandbox, else none), a `Tracker`, or None. ``robot``: the description the
+    self-filter poses (`robo_perception.robot.PANDA` by default).
     """
     t0 = time.perf_counter()
     views = views_from_state(observations, cameras)
@@ -302,7 +335,7 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
             # each observation carries the joints (or at least the hand pose) it was taken with
             sel = np.flatnonzero(keep & (pcam == ci))
             if v.joint is not None:  # self-filter: the whole robot, posed from the measured joints
-                keep[sel[robot_mask(P[sel], v.joint, v.gripper)]] = False
+                keep[sel[robot_mask(P[sel], v.joint, v.gripper, robot=robot)]] = False
             elif v.ee_pose is not None:  # fallback: the hand near the TCP only
                 keep[sel[_hand_exclusion(P[sel], v.ee_pose, v.gripper, hand)]] = False
     sel = np.flatnonzero(keep)
@@ -323,7 +356,8 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
             if color_split is not None:
                 modes = _color_modes(chroma[g], color_split, min_points)
                 if modes is not None:
-                    parts = [g[sub] for sub in _euclidean_groups(Po[g], voxel, min_points, modes)]
+                    parts = _absorb_fragments([g[sub] for sub in _euclidean_groups(Po[g], voxel, min_points, modes)],
+                                              Po, Co, voxel)
             for part in parts:
                 if float(ho[part].max()) > max_object_height:
                     continue  # reaches up out of the workspace of objects: the robot arm
@@ -384,24 +418,29 @@ def _plane_warnings(plane: Plane, on_plane: np.ndarray) -> list:
 def _held_evidence(o: ObjectCluster, view: Optional[CameraView], plane: Plane, hand: HandGeometry) -> None:
     """Fill ``o.held_evidence`` and ``o.held`` from the measured gripper and the points near the
     pads (see ObjectCluster)."""
-    ev: dict = {"gripper_closed_on_something": False, "between_pads": 0, "lifted_near_tcp": False,
-                "moves_with_tcp": None}
+    ev: dict = {"gripper_closed_on_something": False, "between_pads": 0, "spans_gap": False,
+                "lifted_near_tcp": False, "moves_with_tcp": None}
     o.held_evidence = ev
     o.held = False
     if view is None or view.ee_pose is None or view.gripper is None:
         return
     g = float(view.gripper)
-    # the fingers left the fully open stop and did not meet: something stopped them
+    # the fingers left the fully open stop and did not meet: something may have stopped them
     ev["gripper_closed_on_something"] = bool(-0.92 < g < 0.97)
     T = pose_to_matrix(view.ee_pose)
     L = (o.points - T[:3, 3]) @ T[:3, :3]
-    half = 0.5 * gripper_to_width(g, hand)
-    zone = ((np.abs(L[:, 0]) <= hand.finger_half_depth + 0.02) & (np.abs(L[:, 1]) <= half + 0.012)
+    gap = gripper_to_width(g, hand)
+    zone = ((np.abs(L[:, 0]) <= hand.finger_half_depth + 0.02) & (np.abs(L[:, 1]) <= 0.5 * gap + 0.012)
             & (L[:, 2] >= -0.07) & (L[:, 2] <= hand.tip_beyond_tcp + 0.02))
     ev["between_pads"] = int(zone.sum())
+    # closed on it: what lies between the pads fills the gap they stopped at (a part-open
+    # gripper around an object, not yet closed, leaves room on both sides)
+    if ev["between_pads"] >= 5:
+        y = L[zone, 1]
+        ev["spans_gap"] = bool(float(y.max() - y.min()) >= gap - 0.006)
     near = float(np.min(np.linalg.norm(o.points - T[:3, 3], axis=1))) if len(o.points) else math.inf
     ev["lifted_near_tcp"] = bool(o.bottom > 0.012 and near < 0.04)
-    o.held = bool(ev["gripper_closed_on_something"] and (ev["between_pads"] >= 5 or ev["lifted_near_tcp"]))
+    o.held = bool(ev["gripper_closed_on_something"] and (ev["spans_gap"] or ev["lifted_near_tcp"]))
 
 
 def _grow_masks(objects: list, views: list, h: np.ndarray, pidx: np.ndarray, pcam: np.ndarray,

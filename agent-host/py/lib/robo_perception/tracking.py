@@ -131,8 +131,10 @@ class Tracker:
                 if t.tcp is not None and tcp_now is not None else last
             for oi, o in enumerate(objs):
                 grip = bool(o.held or o.held_evidence.get("gripper_closed_on_something"))
-                d = float(np.linalg.norm(o.center - (carried if t.held else last)))
-                if grip and not t.held:
+                d = float(np.linalg.norm(o.center - last))
+                if t.held or grip:
+                    # carried since (or picked up since): it may also have been put down where
+                    # the hand was when it opened, so the nearer of the two predictions counts
                     d = min(d, float(np.linalg.norm(o.center - carried)))
                 gate = _GATE_HELD_M if (t.held or grip) else _GATE_M
                 dc = float(np.linalg.norm(chroma_of(o.colors) - np.asarray(t.chroma)))
