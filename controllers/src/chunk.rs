@@ -192,25 +192,39 @@ impl ChunkPlan {
         let mut length = 0.0;
         let mut turn = 0.0;
         let mut last = plan.poses[0];
-        for a in actions {
+        let (mut widest, mut widest_at) = (0.0, 0);
+        for (w, a) in actions.iter().enumerate() {
             if a[..6].iter().all(|v| v.is_finite()) {
                 let p = Isometry3::from_parts(
                     Translation3::new(a[0], a[1], a[2]),
                     UnitQuaternion::from_scaled_axis(Vector3::new(a[3], a[4], a[5])),
                 );
-                turn += p.rotation.angle_to(&last.rotation);
-                length += (p.translation.vector - last.translation.vector).norm()
-                    + PATH_ROT_M_PER_RAD * p.rotation.angle_to(&last.rotation);
+                let step = p.rotation.angle_to(&last.rotation);
+                if step > widest {
+                    (widest, widest_at) = (step, w);
+                }
+                turn += step;
+                length += (p.translation.vector - last.translation.vector).norm() + PATH_ROT_M_PER_RAD * step;
                 last = p;
             }
         }
         // Rotation vectors interpolated component by component across the ±π wrap turn the hand
         // the long way round: a full turn less the direct angle, more than half a turn further
-        // than the direct way. (A deliberate turn past π looks the same; the reason says
-        // "probably".)
+        // than the direct way. Refused however finely it is stepped (a deliberate turn of more
+        // than three quarters of a turn looks the same: it takes two chunks; the reason says
+        // "probably").
         let direct = plan.poses[0].rotation.angle_to(&last.rotation);
         let pi = std::f64::consts::PI;
         let long_way = turn > direct + pi && (turn + direct - 2.0 * pi).abs() < 0.5;
+        if long_way {
+            return Err(Rejection::LongWayRound {
+                waypoint: widest_at,
+                value: widest,
+                max: cfg.max_tcp_step_rad,
+                turn_rad: turn,
+                direct_rad: direct,
+            });
+        }
         let spacing = (length / MAX_PATH_SAMPLES as f64).max(PATH_SPACING_M);
         let mut prev = start_q;
         let mut t = 0.0;
@@ -231,15 +245,6 @@ impl ChunkPlan {
                 (turned, cfg.max_tcp_step_rad, StepQuantity::TcpRotation),
             ] {
                 if exceeds(value, max) {
-                    if long_way && quantity == StepQuantity::TcpRotation {
-                        return Err(Rejection::LongWayRound {
-                            waypoint: w,
-                            value,
-                            max,
-                            turn_rad: turn,
-                            direct_rad: direct,
-                        });
-                    }
                     return Err(Rejection::StepTooLarge { waypoint: w, quantity, value, max });
                 }
             }

@@ -243,7 +243,7 @@ impl fmt::Display for Rejection {
             }
             Self::LongWayRound { waypoint, value, max, turn_rad, direct_rad } => write!(
                 f,
-                "actions[{waypoint}]: the TCP turns {value:.2} rad (cap {max:.2}); the chunk turns {turn_rad:.1} rad to end {direct_rad:.2} rad away: probably rotation vectors interpolated across the ±π wrap: use robo_perception.interpolate_poses, not more waypoints"
+                "actions[{waypoint}]: the chunk turns the TCP {turn_rad:.1} rad in all (this step {value:.2} rad, cap {max:.2}) to end {direct_rad:.2} rad from where it starts, the long way round: probably rotation vectors interpolated across the ±π wrap: use robo_perception.interpolate_poses, not more waypoints (to turn more than three quarters of a turn on purpose, use two chunks)"
             ),
         }
     }

@@ -126,6 +126,13 @@ def test_a_chunk_interpolated_across_the_axis_angle_wrap_is_refused_with_the_fix
     assert robo.post_actions({"actions": naive, "type": "ee_pose", "freq": ""}) == 0
     f = feedback()
     assert f["status"] == "rejected" and "interpolate_poses" in f["reason"] and "wrap" in f["reason"], f
+    # finely stepped, every step far under the cap: still the long way round, still refused
+    fine = [[a + (b - a) * k / 60 for a, b in zip(ee, goal)] + [-1.0] for k in range(1, 61)]
+    joints = robo.get_state([])["joint"]
+    assert robo.post_actions({"actions": fine, "type": "ee_pose", "freq": ""}) == 0
+    f = feedback()
+    assert f["status"] == "rejected" and "long way round" in f["reason"] and "interpolate_poses" in f["reason"], f
+    assert max(abs(a - b) for a, b in zip(joints, robo.get_state([])["joint"])) < 1e-6
     short = [p + [-1.0] for p in rp.interpolate_poses(ee, goal, 0.01, 0.05)]
     assert robo.post_actions({"actions": short, "type": "ee_pose", "freq": ""}) == 1, feedback()
 
