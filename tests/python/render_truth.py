@@ -259,9 +259,10 @@ def move_joints(target: Sequence[float], gripper: float = -1.0) -> bool:
     return robo.post_actions({"type": "joint", "freq": "", "actions": path}) == 1
 
 
-def trace_state(scene: dict, trace: dict) -> tuple[dict, dict]:
-    """Object poses and fixture joints (MuJoCo units) of a native trace's last sample."""
-    last = trace["samples"][-1]
+def trace_state(scene: dict, trace: dict, t: Optional[float] = None) -> tuple[dict, dict]:
+    """Object poses and fixture joints (MuJoCo units) of a native trace's last sample, or of the
+    sample nearest simulated time `t` (s)."""
+    last = trace["samples"][-1] if t is None else min(trace["samples"], key=lambda s: abs(s["t_s"] - t))
     objects = {n: last["objects"][i] for i, n in enumerate(trace["objects"])}
     kinds = {f["name"]: (f.get("joint") or {}).get("kind", "hinge") for f in scene.get("fixtures", [])}
     fixtures = {n: (math.radians(v) if kinds.get(n) == "hinge" else v) for n, v in zip(trace["joints"], last["joints"])}

@@ -135,7 +135,8 @@ def test_clustering_and_naming_offline():
     a = _box_cloud(np.array([0.5, -0.1, 0.02]), 0.2, np.array([0.04, 0.04, 0.04]), seed=5)
     b = _box_cloud(np.array([0.5, 0.1, 0.03]), 0.0, np.array([0.06, 0.05, 0.06]), seed=6)
     P = np.concatenate([a, b])
-    from robo_perception.segmentation import _chromaticity, _color_modes
+    from robo_perception.naming import _chromaticity
+    from robo_perception.segmentation import _color_modes
     from robo_perception.voxels import _euclidean_groups
     groups = _euclidean_groups(P, 0.006, 20)
     assert sorted(len(g) for g in groups) == sorted([len(a), len(b)])

@@ -201,12 +201,6 @@ def _last_eval(trace_dir: Path) -> dict:
     return json.loads(evals[-1].read_text())
 
 
-def _objects_at(trace: dict, t: float) -> dict:
-    """Object poses of the trace sample nearest simulated time `t`."""
-    sample = min(trace["samples"], key=lambda s: abs(s["t_s"] - t))
-    return {name: sample["objects"][i] for i, name in enumerate(trace["objects"])}
-
-
 def _move(goal, gripper, step=0.02):
     import robo
     path = rp.interpolate_poses(robo.get_state([])["ee_pose"], goal, max_step_m=step, max_step_rad=0.3)
@@ -255,7 +249,7 @@ def test_identity_and_held_through_a_pick_and_a_place_against_mujoco_segmentatio
         trace = g.end_episode()
         for obs, scene, holding in ((held_obs, held_scene, True), (placed_obs, placed_scene, False)):
             truth.set_state(obs["joint"], rp.gripper_to_width(obs["gripper"][0]) / 2, fixtures=fixtures,
-                            objects=_objects_at(trace, obs["timestamp"]))
+                            objects=rt.trace_state(g.scene, trace, obs["timestamp"])[0])
             for o in scene.objects:
                 label = _truth_label(o, truth)
                 assert label in ids, f"{o.describe()} is {label}, which was not an object at the start"

@@ -46,27 +46,7 @@ def _color_similarity(a: str, b: str) -> float:
 
 def _hsv_name(h: float, s: float, v: float) -> str:
     """Colour word for hue (deg), saturation and (bright-pixel) value, all of a lit object."""
-    if v < 0.16:
-        return "black"
-    if s < 0.22 or (v < 0.35 and s < 0.35):
-        if v >= 0.92:
-            return "white"
-        return "grey" if v > 0.22 else "black"
-    if h < 15 or h >= 340:
-        return "brown" if v < 0.45 else "red"
-    if h < 45:
-        return "brown" if v < 0.8 else "orange"
-    if h < 70:
-        return "brown" if v < 0.5 else "yellow"
-    if h < 165:
-        return "green"
-    if h < 195:
-        return "cyan"
-    if h < 255:
-        return "blue"
-    if h < 290:
-        return "purple"
-    return "pink"
+    return str(_hsv_names(np.array([[h, s, v]], dtype=float))[0])
 
 
 def color_name(rgb: ArrayLike) -> str:
@@ -123,8 +103,15 @@ def shape_name(extents: ArrayLike, fill: float, hollow: bool = False, thin_fill:
     return "object"
 
 
+def _chromaticity(rgb: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 RGB -> (N, 2) chromaticity (r, g shares), damped towards grey when dark."""
+    c = rgb.astype(np.float32) + 8.0
+    return c[:, :2] / c.sum(axis=1, keepdims=True)
+
+
 def _hsv_names(hsv: np.ndarray) -> np.ndarray:
-    """`_hsv_name` for every row of an (N, 3) HSV array at once (per-pixel names)."""
+    """Colour words for every row of an (N, 3) HSV array (hue in degrees): black when dark, white
+    or grey when unsaturated, else by hue, with dim reds, oranges and yellows called brown."""
     h, s, v = hsv[:, 0], hsv[:, 1], hsv[:, 2]
     grey = (s < 0.22) | ((v < 0.35) & (s < 0.35))
     conds = [v < 0.16, grey & (v >= 0.92), grey & (v > 0.22), grey,

@@ -14,7 +14,7 @@ import numpy as np
 from .camera import CameraView, depth_to_points, views_from_state
 from .geometry import OrientedBox, Plane, fit_plane_ransac, min_area_rect, obb_in_plane, obb_pca
 from .hand import FRANKA_HAND, HandGeometry, gripper_to_width
-from .naming import _color_similarity, color_name, shape_name
+from .naming import _chromaticity, _color_similarity, color_name, shape_name
 from .report import warn
 from .robot import PANDA, RobotDescription, robot_mask
 from .tracking import default_tracker
@@ -148,10 +148,6 @@ def _hand_exclusion(points: np.ndarray, ee_pose: Optional[Sequence[float]], grip
     return fingers | env | body | wrist
 
 
-def _chromaticity(rgb: np.ndarray) -> np.ndarray:
-    """(N, 3) uint8 RGB -> (N, 2) chromaticity (r, g shares), damped towards grey when dark."""
-    c = rgb.astype(np.float32) + 8.0
-    return c[:, :2] / c.sum(axis=1, keepdims=True)
 
 
 

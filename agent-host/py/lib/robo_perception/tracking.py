@@ -28,6 +28,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from .naming import _chromaticity
 from .transforms import ArrayLike
 
 TRACKS_ENV = "R2G_PERCEPTION_TRACKS"
@@ -56,8 +57,7 @@ class Track:
 
 def chroma_of(colors: np.ndarray) -> np.ndarray:
     """Mean (r, g) chromaticity of RGB samples (uint8), the colour cue used for association."""
-    c = np.asarray(colors, dtype=np.float64).reshape(-1, 3) + 8.0
-    return (c[:, :2] / c.sum(axis=1, keepdims=True)).mean(axis=0)
+    return _chromaticity(np.asarray(colors).reshape(-1, 3)).mean(axis=0).astype(np.float64)
 
 
 class Tracker:
