@@ -92,7 +92,8 @@ class _StateBase(TypedDict):
     """Net contact force the environment exerts on the robot, [fx, fy, fz] in N, base frame,
     low-pass filtered over about 20 ms. The Franka reflexes watch its magnitude."""
     fault: Optional[str]
-    """None, or the reason while the arm is in an operator-required fault (Franka)."""
+    """None, or the reason: an operator-required fault (Franka), or a robot side that publishes
+    no state (the arm holds; every command returns 0 until it is back)."""
     backend: Literal["simulation", "franka"]
     mode: Literal["wall", "lockstep"]
     control_type: Optional[Literal["joint", "ee_pose"]]

@@ -4,6 +4,8 @@ set -euo pipefail
 pkgs=(libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libopengl0 pkg-config fonts-dejavu-core g++ chromium)
 if ! python3 -m venv --help >/dev/null 2>&1; then pkgs+=(python3-venv); fi
 if ! command -v python3 >/dev/null 2>&1; then pkgs+=(python3 python3-venv); fi
+# systemd-analyze, systemd-sysusers and systemd-tmpfiles check deploy/ (tests/tests/service.rs).
+if ! command -v systemd-analyze >/dev/null 2>&1; then pkgs+=(systemd); fi
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -315,6 +315,8 @@ impl Worker {
             .env_clear()
             .env("R2G_INSTANCE", &self.cfg.instance)
             .env("PATH", "/usr/bin:/bin")
+            // Where the instance's shared memory is found (deploy/ moves it under /run/r2g).
+            .envs(std::env::var_os("R2G_IPC_CONFIG").map(|v| ("R2G_IPC_CONFIG", v)))
             // Which perception services the proxy may call for the program (never the program's choice).
             .envs(std::env::var_os("R2G_PERCEPTION_CONFIG").map(|v| ("R2G_PERCEPTION_CONFIG", v)))
             .stdin(Stdio::piped())
@@ -393,6 +395,9 @@ impl Worker {
             .env("MALLOC_ARENA_MAX", "2")
             // robo_perception keeps object identities for the whole episode in this file
             .env("R2G_PERCEPTION_TRACKS", self.cfg.scratch.join(".perception-tracks.json"))
+            // Where iceoryx2 keeps the instance's files: no secret (the sandbox denies it), named
+            // so the hostile-program suite probes the configured place, not only the default.
+            .env("R2G_IPC_ROOT", ipc_root())
             .current_dir(&self.cfg.scratch)
             .stdin(Stdio::null())
             .stdout(std::fs::File::create(&out_path)?)
@@ -600,4 +605,9 @@ fn classify(r: &ExecResult, limits: &Limits) -> Option<String> {
         }
         _ => None,
     }
+}
+
+/// The iceoryx2 root path this process uses (see `ipc_schema::ipc_config`).
+fn ipc_root() -> String {
+    ipc_schema::ipc_config().map(|c| c.global.root_path().to_string()).unwrap_or_default()
 }

@@ -8,6 +8,7 @@ pub mod ipc;
 pub mod perception;
 pub mod robo;
 pub mod sim;
+pub mod soak;
 pub mod tick;
 
 /// Prints a table: a header row and rows of cells, columns padded to fit.

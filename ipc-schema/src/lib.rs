@@ -10,7 +10,7 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 /// Bumped whenever any payload below changes layout or meaning. Every service carries it as
 /// the attribute `r2g.schema`; a process of another build is refused when it connects.
-pub const SCHEMA_VERSION: u32 = 3;
+pub const SCHEMA_VERSION: u32 = 4;
 /// Attribute key that carries [`SCHEMA_VERSION`] on every service.
 pub const SCHEMA_ATTRIBUTE: &str = "r2g.schema";
 
@@ -50,7 +50,7 @@ impl Default for Pose {
 /// Holds no object poses: privileged simulator state never crosses IPC.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
-#[type_name("r2g.SimState.v2")]
+#[type_name("r2g.SimState.v3")]
 pub struct SimState {
     /// Increments with every published state.
     pub seq: u64,
@@ -69,12 +69,15 @@ pub struct SimState {
     /// Net contact force the environment exerts on the robot (arm and gripper), base frame, N.
     /// What a real arm's external-force estimate reports; the runtime's Franka reflexes use it.
     pub external_force_n: [f64; 3],
+    /// Names this run of the robot side (nonzero, new at every start): the runtime tells a
+    /// restarted robot side from the one it lost, and commands carry it back.
+    pub session: u64,
 }
 
 /// runtime → sim-host, once per tick: the limited joint command.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
-#[type_name("r2g.JointCommand.v1")]
+#[type_name("r2g.JointCommand.v2")]
 pub struct JointCommand {
     pub seq: u64,
     /// The state this command was computed from.
@@ -83,6 +86,10 @@ pub struct JointCommand {
     pub dq_rad_s: [f64; N_JOINTS],
     /// Commanded opening of one finger in metres.
     pub finger_m: f64,
+    /// The [`SimState::session`] of the state this command was computed from. A robot side
+    /// ignores commands of another session: a restarted one never follows a target meant for
+    /// its predecessor.
+    pub session: u64,
 }
 
 /// runtime → sim-host: restore the scene's initial state.
@@ -270,7 +277,8 @@ pub struct RobotState {
     pub reset_id: u64,
     /// [`SimState::external_force_n`] low-pass filtered (20 ms), base frame, N.
     pub external_force_n: [f64; 3],
-    /// 1 while an `operator_required` fault holds the arm (Franka profile).
+    /// Bit 0: an `operator_required` fault holds the arm (Franka profile). Bit 1: the robot
+    /// side publishes no state; the arm holds and requests are refused until it is back.
     pub fault: u32,
     pub _pad: u32,
 }
@@ -427,7 +435,7 @@ pub fn read_str(src: &[u8]) -> &str {
 }
 
 /// Errors when connecting to the services of an instance.
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, Clone, thiserror::Error)]
 #[non_exhaustive]
 pub enum SchemaError {
     #[error("invalid service name '{name}': {detail}")]
@@ -444,6 +452,8 @@ pub enum SchemaError {
     Open { service: String, detail: String },
     #[error("cannot create an iceoryx2 node: {0}")]
     Node(String),
+    #[error("iceoryx2 config {path} (from R2G_IPC_CONFIG): {detail}")]
+    Config { path: String, detail: String },
 }
 
 /// Names of every service of one instance. Instances let many gyms share one machine.
@@ -621,10 +631,40 @@ pub fn open_or_create_event(node: &Node<ipc::Service>, name: &str) -> Result<Eve
     }
 }
 
+/// The iceoryx2 configuration of every r2g process: the file `$R2G_IPC_CONFIG` names (an
+/// iceoryx2 TOML; deploy/ ships one per instance that moves the root path under `/run/r2g`),
+/// else iceoryx2's own lookup (root path `/tmp/iceoryx2`). Loaded once per process; a file
+/// that cannot be read, or that disagrees with a configuration already in use, is an error.
+pub fn ipc_config() -> Result<&'static Config, SchemaError> {
+    static LOADED: std::sync::OnceLock<Result<&'static Config, SchemaError>> = std::sync::OnceLock::new();
+    LOADED.get_or_init(load_ipc_config).clone()
+}
+
+fn load_ipc_config() -> Result<&'static Config, SchemaError> {
+    let Some(path) = std::env::var_os("R2G_IPC_CONFIG") else {
+        return Ok(Config::global_config());
+    };
+    let shown = path.to_string_lossy().into_owned();
+    let err = |detail: String| SchemaError::Config { path: shown.clone(), detail };
+    let file = iceoryx2::prelude::FilePath::new(path.as_encoded_bytes())
+        .map_err(|e| err(format!("not a usable file path ({e:?})")))?;
+    let wanted = Config::from_file(&file).map_err(|e| err(format!("cannot be loaded ({e:?})")))?;
+    let global = Config::setup_global_config_from_file(&file).map_err(|e| err(format!("cannot be loaded ({e:?})")))?;
+    if global.global.root_path() != wanted.global.root_path() {
+        return Err(err(format!(
+            "this process already uses iceoryx2 root path {}, not the file's {}",
+            global.global.root_path(),
+            wanted.global.root_path()
+        )));
+    }
+    Ok(global)
+}
+
 /// Creates a node for one r2g process. Signal handling stays with the process itself.
 pub fn node(name: &str) -> Result<Node<ipc::Service>, SchemaError> {
     let node_name = NodeName::new(name).map_err(|e| SchemaError::Node(format!("{e:?}")))?;
     NodeBuilder::new()
+        .config(ipc_config()?)
         .name(&node_name)
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<ipc::Service>()
@@ -635,7 +675,8 @@ pub fn node(name: &str) -> Result<Node<ipc::Service>, SchemaError> {
 /// (SIGKILL, power loss). Returns how many dead nodes were cleaned.
 pub fn cleanup_dead_nodes() -> usize {
     let mut cleaned = 0;
-    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+    let Ok(config) = ipc_config() else { return 0 };
+    let _ = Node::<ipc::Service>::list(config, |state| {
         if let NodeState::<ipc::Service>::Dead(view) = state {
             if view.try_remove_stale_resources().is_ok() {
                 cleaned += 1;
@@ -706,12 +747,13 @@ mod tests {
         // A layout change must bump SCHEMA_VERSION; this test makes the change visible.
         // Schema 2 added the external force (SimState, RobotState), the fault flag, the reply's
         // latency stamps and the profile limits; schema 3 the continuous TCP axis-angle vector
-        // (RobotState).
-        assert_eq!(core::mem::size_of::<SimState>(), 240);
+        // (RobotState); schema 4 the robot side's session (SimState, JointCommand).
+        assert_eq!(core::mem::size_of::<SimState>(), 248);
+        assert_eq!(core::mem::size_of::<JointCommand>(), 144);
         assert_eq!(core::mem::size_of::<Request>(), 40 + 8 * WAYPOINT_LEN * MAX_CHUNK);
         assert_eq!(core::mem::size_of::<RobotState>(), 280);
         assert_eq!(core::mem::size_of::<Reply>(), 48 + REASON_LEN);
-        assert_eq!(SCHEMA_VERSION, 3);
+        assert_eq!(SCHEMA_VERSION, 4);
     }
 }
 

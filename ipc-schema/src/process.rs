@@ -40,7 +40,8 @@ pub fn die_with_parent() {
 /// `None` not registered at all.
 pub fn node_alive(name: &str) -> Option<bool> {
     let mut found = None;
-    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+    let Ok(config) = crate::ipc_config() else { return None };
+    let _ = Node::<ipc::Service>::list(config, |state| {
         let (alive, details) = match &state {
             NodeState::<ipc::Service>::Alive(v) => (true, v.details()),
             NodeState::<ipc::Service>::Dead(v) => (false, v.details()),
@@ -96,6 +97,22 @@ impl Drop for PeerWatch {
     fn drop(&mut self) {
         self.stop.store(true, Ordering::Relaxed);
     }
+}
+
+/// The folder of one instance's local files (the operator socket): `$R2G_RUN_DIR/<instance>`
+/// (deploy/'s units set `/run/r2g`), else `/run/r2g/<instance>` when it exists (an installed
+/// instance, so an operator's shell needs no variable), else `$XDG_RUNTIME_DIR/r2g/<instance>`,
+/// else `/tmp/r2g-<uid>/<instance>`.
+pub fn run_dir(instance: &str) -> std::path::PathBuf {
+    let installed = std::path::Path::new("/run/r2g").join(instance);
+    let base = match (std::env::var_os("R2G_RUN_DIR"), std::env::var_os("XDG_RUNTIME_DIR")) {
+        (Some(d), _) => std::path::PathBuf::from(d),
+        _ if installed.is_dir() => return installed,
+        (None, Some(x)) => std::path::Path::new(&x).join("r2g"),
+        // SAFETY: getuid cannot fail.
+        (None, None) => std::path::PathBuf::from(format!("/tmp/r2g-{}", unsafe { libc::getuid() })),
+    };
+    base.join(instance)
 }
 
 /// Node names of the processes of one instance.

@@ -228,7 +228,9 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>, raw: boo
     out.set_item("mode", if state.mode == ipc_schema::Mode::Lockstep as u32 { "lockstep" } else { "wall" })?;
     out.set_item("control_type", ControlType::from_u32(state.control_type).map(ControlType::name))?;
     let fault = (state.fault != 0).then(|| {
-        if feedback.status == "operator_required" {
+        if state.fault & 2 != 0 {
+            "the robot side publishes no state (it stopped or hangs): the arm holds its last command and chunks are refused until it is back".to_string()
+        } else if feedback.status == "operator_required" {
             feedback.reason.clone()
         } else {
             format!("the arm is in a fault that needs an operator (`r2g clear --instance {}`)", instance())

@@ -105,6 +105,14 @@ pub struct Controller {
     accepted: Option<Reply>,
     /// The reply of a chunk stopped by a safety check or reflex, sent once the arm rests.
     stop_reply: Option<Reply>,
+    /// Ticks since start, in seconds (the time base of `robot_lost_since_s`).
+    clock_s: f64,
+    /// The robot side went silent at this clock time (see [`Self::robot_lost`]).
+    robot_lost_since_s: Option<f64>,
+    /// How long it had been silent when that was noticed, ms.
+    lost_after_ms: f64,
+    /// The command restarted at the measured state since the last [`Self::take_restarted`].
+    restarted: bool,
 }
 
 /// A request the controller wants passed to the simulator.
@@ -154,6 +162,10 @@ impl Controller {
             fault: None,
             accepted: None,
             stop_reply: None,
+            clock_s: 0.0,
+            robot_lost_since_s: None,
+            lost_after_ms: 0.0,
+            restarted: false,
         }
     }
 
@@ -180,6 +192,60 @@ impl Controller {
     /// The operator fault holding the arm, if any.
     pub fn fault(&self) -> Option<&str> {
         self.fault.as_ref().map(Text::as_str)
+    }
+
+    /// The operator's fault reset (only ever called for a request from the operator socket).
+    /// Returns whether there was a fault to clear.
+    pub fn clear_fault(&mut self) -> bool {
+        self.fault.take().is_some()
+    }
+
+    /// Whether the robot side is silent (between [`Self::robot_lost`] and [`Self::robot_back`]).
+    pub fn is_robot_lost(&self) -> bool {
+        self.robot_lost_since_s.is_some()
+    }
+
+    /// The robot side has published no state for `silent_ms`: the running chunk (or reset) ends
+    /// with a fault, the command brakes to rest within the limits from where it is (the last
+    /// safe command, never a new target), and requests are refused until [`Self::robot_back`].
+    /// Allocation-free (called between ticks).
+    pub fn robot_lost(&mut self, silent_ms: f64) {
+        if self.robot_lost_since_s.is_some() {
+            return;
+        }
+        self.robot_lost_since_s = Some(self.clock_s);
+        self.lost_after_ms = silent_ms;
+        let why = format_args!(
+            "stopped: the robot side published no state for {silent_ms:.0} ms (it stopped or hangs); the arm holds its last command, and chunks are refused until it is back"
+        );
+        if let Some(a) = self.active.take() {
+            let mut r = Reply::formatted(a.id, a.client, Status::Failed, why);
+            r.executed = self.reference.reached as u32;
+            self.stop_reply = Some(a.stamp(r));
+        } else if let Some((id, client, _)) = self.pending_reset.take() {
+            self.stop_reply = Some(Reply::formatted(id, client, Status::Failed, why));
+        }
+        if self.tracker.is_some() {
+            self.halting = true;
+        }
+    }
+
+    /// Fresh state after [`Self::robot_lost`]: the command restarts at rest at the measured
+    /// joints (never at an old target), and requests are taken again. Returns the stopped
+    /// chunk's reply if the arm had not come to rest before.
+    pub fn robot_back(&mut self, state: &SimState) -> Option<Reply> {
+        self.robot_lost_since_s?;
+        self.robot_lost_since_s = None;
+        self.halting = false;
+        self.braking_before += self.tracker.map_or(0, |t| t.braking_ticks);
+        self.tracker = None;
+        self.plan = ChunkPlan::hold(state.q_rad, -1.0);
+        self.finger_prev = state.finger_m;
+        self.finger_still_ticks = 0;
+        self.rotvec = None;
+        self.ensure_tracker(state);
+        self.q_ref = state.q_rad;
+        self.stop_reply.take()
     }
 
     /// Adds collision, obstacle and workspace checks to chunk acceptance and to every tick.
@@ -209,12 +275,19 @@ impl Controller {
         }
         self.last_rejection = None;
         if req.kind == RequestKind::ClearFault as u32 {
-            let why = if self.fault.take().is_some() {
-                "fault cleared by the operator: the arm accepts commands again"
-            } else {
-                "there was no fault to clear"
-            };
-            return (Some(Reply::new(req.id, req.client, Status::Executed, why)), Forward::None);
+            // Anyone who can open the request service can send this: only the operator socket
+            // (SO_PEERCRED-checked, see `operator`) clears faults.
+            self.last_rejection = Some("operator_only");
+            let why = "clearing a fault is an operator request: it is taken only on the operator socket (`r2g clear`), never from the agent channel";
+            return (Some(Reply::new(req.id, req.client, Status::Rejected, why)), Forward::None);
+        }
+        if let Some(since) = self.robot_lost_since_s {
+            self.last_rejection = Some("robot_lost");
+            let why = format_args!(
+                "the robot side has published no state for {:.0} ms: the arm holds its last command and requests are refused until fresh state arrives; observe again later, or stop and report",
+                (self.clock_s - since) * 1e3 + self.lost_after_ms
+            );
+            return (Some(Reply::formatted(req.id, req.client, Status::Rejected, why)), Forward::None);
         }
         // A new chunk from the client whose chunk is running replaces it, blending from the
         // current command; anything else waits for the running request to finish.
@@ -401,6 +474,7 @@ impl Controller {
 
     /// One tick: the command to send and, when a request just finished, its reply.
     pub fn tick(&mut self, state: &SimState) -> (JointCommand, Option<Reply>) {
+        self.clock_s += self.dt_s;
         let mut reply = self.complete_reset(state);
         self.ensure_tracker(state);
         if let Some(a) = self.active.as_mut().filter(|a| a.first_motion_ns == 0) {
@@ -562,6 +636,7 @@ impl Controller {
             q_rad: tracker.q_rad,
             dq_rad_s: tracker.dq_rad_s,
             finger_m: tracker.finger_m,
+            session: state.session,
         };
         (cmd, reply)
     }
@@ -620,9 +695,32 @@ impl Controller {
         Some(a.stamp(r))
     }
 
+    /// Whether the command restarted at the measured state (first state, reset, robot side
+    /// back) since the last call.
+    pub fn take_restarted(&mut self) -> bool {
+        std::mem::take(&mut self.restarted)
+    }
+
+    /// Whether `cmd` keeps every joint inside its position and velocity limits and, from
+    /// `prev` one tick before, inside the limiter's acceleration limit (1 % slack for rounding).
+    /// Allocation-free.
+    pub fn within_limits(&self, prev: &JointCommand, cmd: &JointCommand) -> bool {
+        self.robot.joints.iter().enumerate().all(|(j, l)| {
+            let (q, dq) = (cmd.q_rad[j], cmd.dq_rad_s[j]);
+            let ddq = (dq - prev.dq_rad_s[j]) / self.dt_s;
+            q.is_finite()
+                && dq.is_finite()
+                && q >= l.q_min_rad
+                && q <= l.q_max_rad
+                && dq.abs() <= l.dq_max_rad_s * 1.0001
+                && ddq.abs() <= self.cfg.accel_scale * l.ddq_max_rad_s2 * 1.01
+        })
+    }
+
     /// First state, or first after a reset: hold exactly where the arm is.
     fn ensure_tracker(&mut self, state: &SimState) {
         if self.tracker.is_none() {
+            self.restarted = true;
             let t = JointTracker::at_rest(state.q_rad, state.finger_m, &self.robot, &self.cfg);
             self.reference = Reference {
                 q_rad: t.q_rad,
@@ -664,7 +762,7 @@ impl Controller {
             active_request: self.active_request(),
             reset_id: state.reset_id,
             external_force_n: self.force_n,
-            fault: u32::from(self.fault.is_some()),
+            fault: u32::from(self.fault.is_some()) | (u32::from(self.robot_lost_since_s.is_some()) << 1),
             _pad: 0,
         }
     }

@@ -1,7 +1,9 @@
 #![doc = include_str!("../README.md")]
 
 pub mod alloc_count;
+pub mod control_main;
 pub mod controller;
+pub mod health;
 pub mod launch;
 pub mod operator;
 pub mod robot_config;
@@ -35,8 +37,15 @@ pub struct RunConfig {
     pub cpu: Option<usize>,
     /// Stop after this long (benchmarks); None runs until SIGINT/SIGTERM.
     pub duration: Option<Duration>,
-    /// The runtime stops when no state arrives for this long in wall mode.
+    /// Wall mode: the robot side counts as lost when no state arrives for this long; the arm
+    /// holds and requests are refused until fresh state arrives (the loop keeps cycling).
     pub state_timeout: Duration,
+    /// Members of this group may clear faults over the operator socket (besides root and the
+    /// runtime's own user).
+    pub operator_group: Option<String>,
+    /// Called on the loop thread after every wall-mode cycle, outside the tick. Only test
+    /// builds set it (runtime/examples/r2g-control-stall.rs stalls the loop thread with it).
+    pub after_cycle: Option<fn()>,
     /// Profile and the limits added on top of the robot's (`config/robot.json`).
     pub robot: RobotConfig,
 }
@@ -161,6 +170,24 @@ impl Ports {
         Ok(got)
     }
 
+    /// Wall mode: the newest state, if any; a robot side that died mid-sample is no state, and
+    /// the loop's silence check decides what that means.
+    #[inline]
+    fn newest_state_or_none(&self, latest: &mut SimState, stats: &mut TickStats) -> bool {
+        self.newest_state(latest).unwrap_or_else(|_| {
+            stats.robot_port_errors += 1;
+            false
+        })
+    }
+
+    /// Wall mode: the command to the robot side; a robot side that is gone is counted, not fatal.
+    #[inline]
+    fn command(&self, cmd: JointCommand, stats: &mut TickStats) {
+        if self.cmd_pub.send_copy(cmd).is_err() || self.sim_wake.notify().is_err() {
+            stats.robot_port_errors += 1;
+        }
+    }
+
     /// Serves every waiting request. Returns true when replies went out and agents need waking.
     /// Agents come and go (and may be hostile): a failure on their ports is counted, never fatal.
     #[inline]
@@ -216,6 +243,18 @@ impl Ports {
         stats.agent_port_errors += results.iter().filter(|r| r.is_err()).count() as u64;
     }
 
+    /// The same for the robot side, which can die and come back (a restarted sim-host).
+    fn update_robot_connections(&self, stats: &mut TickStats) {
+        use iceoryx2::port::update_connections::UpdateConnections;
+        let results = [
+            self.state_sub.update_connections(),
+            self.cmd_pub.update_connections(),
+            self.reset_pub.update_connections(),
+            self.sim_wake.update_connections(),
+        ];
+        stats.robot_port_errors += results.iter().filter(|r| r.is_err()).count() as u64;
+    }
+
     fn wake_agents(&self, stats: &mut TickStats) {
         if self.agent_wake.notify().is_err() {
             stats.agent_port_errors += 1;
@@ -265,9 +304,31 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
     let mut ctl = Controller::new(robot, cfg.robot.limiter(), dt_s)
         .with_safety(safety)
         .with_profile(cfg.robot.profile, cfg.robot.reflexes);
+    // Leftovers of a robot side or runtime that was SIGKILLed would hold their ports' slots.
+    ipc_schema::cleanup_dead_nodes();
     let ports = Ports::open(&services)?;
     let sim = PeerWatch::spawn(process::sim_node(&cfg.instance), Duration::from_secs(30));
+    // The threads beside the loop start before it raises itself to SCHED_FIFO, so they keep
+    // the normal scheduler.
+    let health = health::Health::new(cfg.mode as u32);
+    let policy = operator::Policy::new(cfg.operator_group.as_deref())?;
+    let _operator = operator::serve(&cfg.instance, health.clone(), policy)?;
+    let notifier = health::spawn_notifier(health.clone());
+    let result = run_loops(cfg, &ports, &mut ctl, &sim, &health);
+    health.stopping.store(true, std::sync::atomic::Ordering::Relaxed);
+    if let Some(t) = notifier {
+        let _ = t.join();
+    }
+    result
+}
 
+fn run_loops(
+    cfg: &RunConfig,
+    ports: &Ports,
+    ctl: &mut Controller,
+    sim: &PeerWatch,
+    health: &health::Health,
+) -> anyhow::Result<TickStats> {
     // The first state: the sim-host republishes while idle, so this arrives within ~20 ms.
     let mut latest = SimState::default();
     let t0 = std::time::Instant::now();
@@ -289,14 +350,14 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
         ports.reset_pub.update_connections()?;
     }
     let reflexes = (cfg.robot.profile == ipc_schema::Profile::Franka).then_some(cfg.robot.reflexes);
-    let info = runtime_info(&ctl, cfg.mode, cfg.period_ns, reflexes);
+    let info = runtime_info(ctl, cfg.mode, cfg.period_ns, reflexes);
     ports.info_pub.send_copy(info)?;
+    health.last_state_ns.store(rt::now_ns(), std::sync::atomic::Ordering::Relaxed);
 
-    let stats = match cfg.mode {
-        Mode::Wall => wall_loop(cfg, &ports, &mut ctl, &sim, latest, info)?,
-        Mode::Lockstep => lockstep_loop(cfg, &ports, &mut ctl, &sim, latest, info)?,
-    };
-    Ok(stats)
+    match cfg.mode {
+        Mode::Wall => wall_loop(cfg, ports, ctl, latest, info, health),
+        Mode::Lockstep => lockstep_loop(cfg, ports, ctl, sim, latest, info, health),
+    }
 }
 
 /// How long before each deadline the wall loop registers newly connected agents.
@@ -306,38 +367,95 @@ fn wall_loop(
     cfg: &RunConfig,
     ports: &Ports,
     ctl: &mut Controller,
-    sim: &PeerWatch,
     mut latest: SimState,
     info: RuntimeInfo,
+    health: &health::Health,
 ) -> anyhow::Result<TickStats> {
+    use std::sync::atomic::Ordering::Relaxed;
     let rt = rt::setup(cfg.fifo_priority, cfg.cpu);
     if let Some(w) = rt.warning() {
         eprintln!("r2g-control: {w}");
     }
+    health.set_realtime(&rt);
     let mut stats = TickStats::default();
     let period = cfg.period_ns;
     let start = rt::now_ns();
     let end = cfg.duration.map(|d| start + d.as_nanos() as u64);
     let mut deadline = start + period;
     let mut last_state_ns = start;
+    let timeout_ns = cfg.state_timeout.as_nanos() as u64;
+    // Fresh state while the robot side counted as lost: recover on a later tick, once the
+    // connections to its new ports are registered outside the tick and the arm is at rest.
+    let mut robot_seen_again = false;
+    let mut incoming = latest;
+    let mut prev_cmd: Option<JointCommand> = None;
     let mut robot_seq = 0u64;
+    let (mut window_max, mut window_end) = (0u64, start + 1_000_000_000);
+    let mut clear_pending: Option<(u64, bool)> = None;
     loop {
         if period > 2 * CONNECT_LEAD_NS {
             rt::sleep_until(deadline - CONNECT_LEAD_NS, 0);
             ports.update_agent_connections(&mut stats);
+            ports.update_robot_connections(&mut stats);
         }
         rt::sleep_until(deadline, cfg.spin_ns);
         let woke = rt::now_ns();
-        stats.wake.record(woke.saturating_sub(deadline));
+        let late = woke.saturating_sub(deadline);
+        stats.wake.record(late);
 
         // ---- tick: no allocation, no locks, no logging ----
         let scope = alloc_count::TickScope::enter();
-        if ports.newest_state(&mut latest)? {
+        let mut back = None;
+        let lost_before = ctl.is_robot_lost();
+        // Fresh: a newer state of the same robot side, or any state of a new one (a repeat of
+        // the same state, as an idle sim-host sends, proves nothing).
+        let fresh = ports.newest_state_or_none(&mut incoming, &mut stats)
+            && (incoming.session != latest.session || incoming.seq > latest.seq);
+        if fresh && !ctl.is_robot_lost() && incoming.session != latest.session {
+            // Another robot side answers (a restart faster than the timeout): what was running
+            // belonged to its predecessor. Stop and resume from its state as after a loss.
+            ctl.robot_lost((woke - last_state_ns) as f64 / 1e6);
+            stats.robot_losses += 1;
             last_state_ns = woke;
+            robot_seen_again = true;
+        } else if fresh && !ctl.is_robot_lost() {
+            latest = incoming;
+            last_state_ns = woke;
+        } else if fresh {
+            // Back, but not used until its ports are registered (one tick later) and it rests:
+            // until then `latest` keeps the lost side's state, so the held command still
+            // carries the old session and a restarted robot side ignores it.
+            last_state_ns = woke;
+            if robot_seen_again && at_rest(&incoming) {
+                latest = incoming;
+                back = ctl.robot_back(&latest);
+                robot_seen_again = false;
+            } else {
+                robot_seen_again = true;
+            }
+        } else if !ctl.is_robot_lost() && woke - last_state_ns > timeout_ns {
+            // The robot side is silent: the loop keeps cycling, holds, and reports it.
+            ctl.robot_lost((woke - last_state_ns) as f64 / 1e6);
+            stats.robot_losses += 1;
+            robot_seen_again = false;
         }
         let (cmd, reply) = ctl.tick(&latest);
-        ports.cmd_pub.send_copy(cmd)?;
-        ports.sim_wake.notify()?;
+        let reply = back.or(reply);
+        // Every command is checked against the limits (not on a tick whose command restarted
+        // at the measured state: a reset or a robot side that came back).
+        if let (Some(p), false) = (prev_cmd, ctl.take_restarted()) {
+            if !ctl.within_limits(&p, &cmd) {
+                stats.limit_violations += 1;
+            }
+        }
+        prev_cmd = Some(cmd);
+        // While the robot side is lost its command goes out after the tick (below): a robot side
+        // that reappears is registered by those sends or the next tick's connection update,
+        // never inside a tick.
+        let lost = lost_before || ctl.is_robot_lost();
+        if !lost {
+            ports.command(cmd, &mut stats);
+        }
         // Requests after the command is out: accepting one (IK, path checks) can take tens of
         // microseconds, which then delays nothing but this tick's sleep.
         let rejected = ports.serve_requests(ctl, &latest, &mut stats)?;
@@ -351,6 +469,9 @@ fn wall_loop(
         }
         drop(scope);
         // ---- end of tick ----
+        if lost {
+            ports.command(cmd, &mut stats);
+        }
         // Agents come and go, and iceoryx2 registers a new listener inside `notify` (one
         // allocation per new agent), so their wake-up follows the tick instead of joining it.
         if wake_agents {
@@ -361,17 +482,33 @@ fn wall_loop(
         stats.compute.record(done - woke);
         stats.ticks += 1;
         deadline = next_deadline(deadline, done, period, &mut stats);
+        // What the notifier and the operator socket read: atomics, stored between ticks. A fault
+        // reset is answered once a tick has published the state that shows it.
+        if let Some((n, cleared)) = clear_pending.take() {
+            health.finish_clear(n, cleared);
+        }
+        if let Some(n) = health.take_clear() {
+            clear_pending = Some((n, ctl.clear_fault()));
+        }
+        window_max = window_max.max(late);
+        if done >= window_end {
+            health.wake_max_ns.store(window_max, Relaxed);
+            (window_max, window_end) = (0, done + 1_000_000_000);
+        }
+        health.ticks.store(stats.ticks, Relaxed);
+        health.overruns.store(stats.overruns, Relaxed);
+        health.last_state_ns.store(last_state_ns, Relaxed);
+        health.agent_port_errors.store(stats.agent_port_errors, Relaxed);
+        let fault = (u32::from(ctl.fault().is_some()) * health::FAULT_OPERATOR)
+            | (u32::from(ctl.is_robot_lost()) * health::FAULT_ROBOT_LOST);
+        health.fault.store(fault, Relaxed);
+        health.limit_violations.store(stats.limit_violations, Relaxed);
+        health.cycles.store(stats.ticks, Relaxed);
+        if let Some(hook) = cfg.after_cycle {
+            hook();
+        }
         if process::stop_requested() || end.is_some_and(|e| done >= e) {
             return Ok(stats);
-        }
-        if sim.lost() {
-            bail!(
-                "r2g-sim of instance '{}' stopped; the runtime stops too (arm command held at the last value)",
-                cfg.instance
-            );
-        }
-        if done - last_state_ns > cfg.state_timeout.as_nanos() as u64 {
-            bail!("no state from r2g-sim for {:?}; the runtime stops", cfg.state_timeout);
         }
     }
 }
@@ -383,12 +520,24 @@ fn lockstep_loop(
     sim: &PeerWatch,
     mut latest: SimState,
     info: RuntimeInfo,
+    health: &health::Health,
 ) -> anyhow::Result<TickStats> {
+    use std::sync::atomic::Ordering::Relaxed;
     let mut stats = TickStats::default();
     let mut robot_seq = 0u64;
     let start = std::time::Instant::now();
     let mut last_beat = std::time::Instant::now();
     loop {
+        health.cycles.fetch_add(1, Relaxed);
+        health.ticks.store(stats.ticks, Relaxed);
+        health.fault.store(u32::from(ctl.fault().is_some()) * health::FAULT_OPERATOR, Relaxed);
+        health.last_state_ns.store(rt::now_ns(), Relaxed);
+        if let Some(n) = health.take_clear() {
+            let cleared = ctl.clear_fault();
+            robot_seq += 1;
+            ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), None, &mut stats);
+            health.finish_clear(n, cleared);
+        }
         if process::stop_requested() || cfg.duration.is_some_and(|d| start.elapsed() >= d) {
             return Ok(stats);
         }
@@ -461,6 +610,12 @@ fn wait_for_state(
         }
         let _ = ports.wake.timed_wait(|_| {}, Duration::from_millis(5));
     }
+}
+
+/// Whether the measured arm is at rest (a robot side that came back is used only then, so the
+/// command restarting at the measured joints with zero velocity is no velocity jump).
+fn at_rest(s: &SimState) -> bool {
+    s.dq_rad_s.iter().all(|v| v.abs() < 0.05)
 }
 
 /// The deadline after `deadline`. A tick that ended past it is an overrun: the missed

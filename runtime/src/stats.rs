@@ -109,6 +109,13 @@ pub struct TickStats {
     pub ticks: u64,
     /// Failed sends/receives on agent-facing ports (counted, never fatal).
     pub agent_port_errors: u64,
+    /// The same on the robot side's ports (a robot side that died or restarted).
+    pub robot_port_errors: u64,
+    /// Times the robot side fell silent past the state timeout.
+    pub robot_losses: u64,
+    /// Commands outside the position, velocity or acceleration limits (each checked against
+    /// the one before; 0 is the only right answer).
+    pub limit_violations: u64,
 }
 
 impl TickStats {
@@ -117,8 +124,12 @@ impl TickStats {
             "ticks": self.ticks,
             "overruns": self.overruns,
             "agent_port_errors": self.agent_port_errors,
+            "robot_port_errors": self.robot_port_errors,
+            "robot_losses": self.robot_losses,
+            "limit_violations": self.limit_violations,
             "tick_allocations": crate::alloc_count::tick_allocations(),
             "tick_pool_allocations": crate::alloc_count::tick_pool_allocations(),
+            "tick_frees": crate::alloc_count::tick_frees(),
             "wake": self.wake.summary(),
             "compute": self.compute.summary(),
         })

@@ -268,11 +268,17 @@ fn franka_reflexes_stop_a_chunk_and_an_operator_fault_holds_until_cleared() {
     let (r, _) = run(&mut ctl, &mut state, &back);
     assert_eq!(r.status, Status::OperatorRequired as u32);
     assert!(r.reason_str().contains("needs an operator"), "{}", r.reason_str());
+    // The agent channel cannot clear it: only the operator socket calls `clear_fault`.
     let mut clear = request(5, ControlType::Joint, &[]);
     clear.kind = RequestKind::ClearFault as u32;
     let (r, _) = ctl.request(&clear, &state);
-    assert_eq!(r.map(|r| r.status), Some(Status::Executed as u32));
+    let r = r.expect("an immediate reply");
+    assert_eq!(r.status, Status::Rejected as u32);
+    assert!(r.reason_str().contains("operator socket"), "{}", r.reason_str());
+    assert!(ctl.fault().is_some());
+    assert!(ctl.clear_fault());
     assert!(ctl.fault().is_none());
+    assert!(!ctl.clear_fault(), "nothing left to clear");
     let back = request(6, ControlType::Joint, &ramp(state.q_rad, 0, -0.05, 2));
     let (r, _) = run(&mut ctl, &mut state, &back);
     assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
@@ -310,5 +316,78 @@ fn step_caps_reject_far_waypoints_with_the_excess_and_pass_split_ones() {
     assert!(why.starts_with("actions[0]: joint 3 changes by 0.1250 rad from the measured position"), "{why}");
     assert!(why.contains("cap is 0.1000 rad") && why.contains("0.0250 rad over"), "{why}");
     let (r, _) = run(&mut ctl, &mut state, &request(2, ControlType::Joint, &ramp(HOME, 2, 0.25, 3)));
+    assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
+}
+
+/// Commands stay inside the position, velocity and acceleration limits (the limiter's own
+/// scaled ones), tick to tick.
+fn assert_within_limits(ctl: &Controller, prev: &ipc_schema::JointCommand, cmd: &ipc_schema::JointCommand, dt: f64) {
+    for (j, l) in ctl.robot.joints.iter().enumerate() {
+        let (q, dq) = (cmd.q_rad[j], cmd.dq_rad_s[j]);
+        assert!(q.is_finite() && dq.is_finite(), "tick {}: joint {} not finite", cmd.seq, j + 1);
+        assert!(q >= l.q_min_rad && q <= l.q_max_rad, "tick {}: joint {} at {q} outside its limits", cmd.seq, j + 1);
+        assert!(dq.abs() <= l.dq_max_rad_s * 1.0001, "tick {}: joint {} at {dq} rad/s", cmd.seq, j + 1);
+        let ddq = (dq - prev.dq_rad_s[j]) / dt;
+        let max = ctl.cfg.accel_scale * l.ddq_max_rad_s2;
+        assert!(ddq.abs() <= max * 1.01, "tick {}: joint {} accelerates at {ddq} > {max} rad/s²", cmd.seq, j + 1);
+    }
+}
+
+#[test]
+fn a_silent_robot_side_stops_the_chunk_within_limits_and_motion_resumes_from_fresh_state() {
+    let (robot, safety) = runtime::scene_robot(&scene()).expect("scene");
+    let mut ctl = Controller::new(robot, LimiterConfig::default(), 0.001).with_safety(safety);
+    let mut state = SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, ..SimState::default() };
+    let mut far = HOME;
+    far[0] = 1.2;
+    far[3] = -1.9;
+    let (reply, _) = ctl.request(&request(1, ControlType::Joint, &[joint_wp(far, -1.0)]), &state);
+    assert!(reply.is_none());
+    let (mut prev, _) = ctl.tick(&state);
+    for _ in 0..300 {
+        let (cmd, _) = ctl.tick(&state);
+        assert_within_limits(&ctl, &prev, &cmd, 0.001);
+        state.q_rad = cmd.q_rad;
+        state.dq_rad_s = cmd.dq_rad_s;
+        state.seq += 1;
+        prev = cmd;
+    }
+    assert!(prev.dq_rad_s.iter().any(|v| v.abs() > 0.1), "mid-chunk, moving");
+    // The robot side goes silent: the state stops changing, the loop keeps ticking.
+    ctl.robot_lost(100.0);
+    assert!(ctl.is_robot_lost());
+    let refused = |ctl: &mut Controller, state: &SimState, id| {
+        let (r, _) = ctl.request(&request(id, ControlType::Joint, &[joint_wp(HOME, -1.0)]), state);
+        let r = r.expect("refused at once");
+        assert_eq!(r.status, Status::Rejected as u32);
+        assert!(r.reason_str().contains("robot side has published no state"), "{}", r.reason_str());
+    };
+    refused(&mut ctl, &state, 2);
+    let mut stopped = None;
+    for _ in 0..3000 {
+        let (cmd, reply) = ctl.tick(&state);
+        assert_within_limits(&ctl, &prev, &cmd, 0.001);
+        prev = cmd;
+        if let Some(r) = reply {
+            stopped = Some(r);
+        }
+    }
+    let r = stopped.expect("the chunk replied once the command rested");
+    assert_eq!((r.id, r.status), (1, Status::Failed as u32));
+    assert!(r.reason_str().contains("published no state for 100 ms"), "{}", r.reason_str());
+    assert!(prev.dq_rad_s.iter().all(|v| v.abs() < 1e-9), "the command holds still: {:?}", prev.dq_rad_s);
+    let held = prev.q_rad;
+    assert!((held[0] - far[0]).abs() > 0.1, "it did not go on to the old target");
+    refused(&mut ctl, &state, 3);
+    // The robot side comes back at another pose (a restarted simulator): the command restarts
+    // at rest exactly there, never at the held command or the old target.
+    let mut back = SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, ..SimState::default() };
+    assert!(ctl.robot_back(&back).is_none(), "the stopped chunk already replied");
+    let (cmd, _) = ctl.tick(&back);
+    assert_eq!(cmd.q_rad, HOME);
+    assert!(cmd.dq_rad_s.iter().all(|v| *v == 0.0));
+    let mut moved = HOME;
+    moved[6] += 0.2;
+    let (r, _) = run(&mut ctl, &mut back, &request(4, ControlType::Joint, &[joint_wp(moved, -1.0)]));
     assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
 }

@@ -37,6 +37,11 @@ struct Args {
     /// this folder. Nothing of it crosses to agents.
     #[arg(long)]
     trace_dir: Option<PathBuf>,
+    /// Keep running while no control process is there (a service whose control unit is
+    /// restarted by the operator); without it the sim-host stops when its control process
+    /// goes away, as `r2g up` expects.
+    #[arg(long)]
+    outlive_control: bool,
 }
 
 /// Writes an episode's trace and its evaluation; a failure to write is reported, not fatal.
@@ -81,6 +86,8 @@ fn run() -> anyhow::Result<()> {
         }
     }
 
+    // A predecessor that was SIGKILLed still holds its ports' slots (one state publisher).
+    ipc_schema::cleanup_dead_nodes();
     let node = ipc_schema::node(&process::sim_node(&args.instance))?;
     let state_pub = ipc_schema::open_or_create_pubsub::<SimState>(&node, &services.sim_state(), Qos::STREAM)?
         .publisher_builder()
@@ -140,8 +147,12 @@ fn run() -> anyhow::Result<()> {
     let mut snapshot_dirty = true;
     let mut last_publish = std::time::Instant::now();
     let mut last_info = std::time::Instant::now();
+    // This run's session: commands computed from another run's state are ignored.
+    let session = ((u64::from(std::process::id()) << 32) ^ ipc_schema::monotonic_ns()) | 1;
     let publish = |sim: &Sim, seq: u64, cmd: u64, reset_id: u64| -> anyhow::Result<()> {
-        state_pub.send_copy(sim.measure(seq, cmd, reset_id))?;
+        let mut state = sim.measure(seq, cmd, reset_id);
+        state.session = session;
+        state_pub.send_copy(state)?;
         control_wake.notify()?;
         Ok(())
     };
@@ -155,7 +166,7 @@ fn run() -> anyhow::Result<()> {
         if process::stop_requested() {
             break Ok(());
         }
-        if control.lost() {
+        if control.lost() && !args.outlive_control {
             break Err(anyhow::anyhow!("r2g-control of instance '{}' stopped; sim-host stops too", args.instance));
         }
         // Sleep until the runtime publishes something; the timeout keeps the checks above live.
@@ -179,7 +190,7 @@ fn run() -> anyhow::Result<()> {
         }
         // Step once per command sample, oldest first; a stream has at most one buffered.
         while let Some(cmd) = cmd_sub.receive()? {
-            if cmd.seq <= last_cmd_seq {
+            if cmd.seq <= last_cmd_seq || cmd.session != session {
                 continue;
             }
             last_cmd_seq = cmd.seq;

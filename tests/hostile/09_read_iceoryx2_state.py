@@ -2,7 +2,10 @@
 import os
 import sys
 
-for top in ("/tmp/iceoryx2", "/tmp/iceoryx2/services", "/tmp/iceoryx2/nodes", "/dev/shm"):
+# The configured root (R2G_IPC_CONFIG, passed in as R2G_IPC_ROOT) and iceoryx2's default.
+roots = {os.environ.get("R2G_IPC_ROOT") or "/tmp/iceoryx2", "/tmp/iceoryx2"}
+tops = [os.path.join(r, sub) for r in sorted(roots) for sub in ("", "services", "nodes")]
+for top in tops + ["/dev/shm"]:
     try:
         names = sorted(os.listdir(top))
     except OSError as e:

@@ -3,7 +3,8 @@ import os
 import socket
 
 paths = []
-for top in ("/tmp/iceoryx2", "/tmp/iceoryx2/services", "/tmp/iceoryx2/nodes"):
+roots = {os.environ.get("R2G_IPC_ROOT") or "/tmp/iceoryx2", "/tmp/iceoryx2"}
+for top in [os.path.join(r, sub) for r in sorted(roots) for sub in ("", "services", "nodes")]:
     try:
         paths += [os.path.join(top, n) for n in sorted(os.listdir(top))]
     except OSError as e:

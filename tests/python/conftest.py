@@ -1,10 +1,13 @@
 """Fixtures that start real `r2g up` instances and always stop them, by pid."""
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Iterator
@@ -14,6 +17,15 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 R2G = ROOT / "target" / "release" / "r2g"
 sys.path.insert(0, str(Path(__file__).parent))
+
+# The Python suite runs on a non-default iceoryx2 root path, as deploy/ sets one: `r2g up` and its
+# children, `robo` in this process, `r2g exec`'s proxy and the hostile programs' probes all follow
+# R2G_IPC_CONFIG. Set before anything here opens iceoryx2 (the configuration is per process).
+if "R2G_IPC_CONFIG" not in os.environ:
+    _ipc = Path(tempfile.mkdtemp(prefix="r2g-pytest-ipc-"))
+    (_ipc / "iceoryx2.toml").write_text(f'[global]\nroot-path = "{_ipc}/root/"\n')
+    os.environ["R2G_IPC_CONFIG"] = str(_ipc / "iceoryx2.toml")
+    atexit.register(shutil.rmtree, _ipc, True)
 
 
 class Instance:

@@ -40,7 +40,8 @@ def run(gym: Instance, program: Path, tmp: Path) -> dict:
         text=True,
         timeout=120,
         preexec_fn=outer_net,
-        env={"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "OPENAI_API_KEY": "sk-test-secret-never-seen"},
+        env={"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "OPENAI_API_KEY": "sk-test-secret-never-seen",
+             "R2G_IPC_CONFIG": os.environ["R2G_IPC_CONFIG"]},
     )
     assert out.returncode == 0, out.stderr[-2000:]
     return json.loads(out.stdout.strip().splitlines()[-1])

@@ -104,3 +104,29 @@ fn bench_all_writes_a_report_with_plots() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn bench_soak_reports_ticks_stall_memory_and_shared_memory() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let out = Command::new(integration_tests::r2g())
+        .args(["bench", "soak", "--minutes", "0.3", "--stall-s", "2", "--sample-s", "1"])
+        .output()
+        .expect("run");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v = last_json_line(&out.stdout);
+    assert_eq!(v["bench"], "soak");
+    for k in ["/ticks", "/missed_ticks", "/wake_p999_us", "/baseline_wake_p999_us", "/ratio", "/agent_chunks"] {
+        assert!(v.pointer(k).and_then(|x| x.as_f64()).is_some_and(f64::is_finite), "{k} missing: {v}");
+    }
+    for k in ["seconds", "missed_ticks", "wake_max_us", "before_missed_ticks"] {
+        assert!(v["stall"][k].as_f64().is_some_and(f64::is_finite), "stall.{k} missing: {v}");
+    }
+    for p in ["r2g-sim", "r2g-control", "agent", "r2g-bench"] {
+        for k in ["start", "end", "growth"] {
+            assert!(v["rss_kib"][p][k].as_f64().is_some_and(f64::is_finite), "rss_kib.{p}.{k} missing: {v}");
+        }
+    }
+    assert!(v["shm_files"]["before"].is_u64() && v["shm_files"]["after"].is_u64(), "{v}");
+    assert!(v["shm_files"]["left_over"].is_array(), "{v}");
+    assert!(v["agent_chunks"].as_u64().is_some_and(|n| n > 0), "the agent posted nothing: {v}");
+}

@@ -1,0 +1,694 @@
+//! `r2g service install|status`: one instance as systemd services on a robot PC. The unit
+//! templates, the users, the instance's folders and its iceoryx2 configuration live in
+//! `deploy/` (see deploy/README.md); this file fills them in for one instance, checks every
+//! value first, and writes all or nothing.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use clap::Subcommand;
+use runtime::launch;
+
+const CONTROL_UNIT: &str = include_str!("../../deploy/systemd/r2g-control@.service");
+const SIM_UNIT: &str = include_str!("../../deploy/systemd/r2g-sim@.service");
+const AGENT_UNIT: &str = include_str!("../../deploy/systemd/r2g-agent@.service");
+const TARGET_UNIT: &str = include_str!("../../deploy/systemd/r2g@.target");
+const SYSUSERS: &str = include_str!("../../deploy/sysusers.d/r2g.conf");
+const TMPFILES: &str = include_str!("../../deploy/tmpfiles.d/r2g@.conf");
+const ICEORYX2: &str = include_str!("../../deploy/iceoryx2/instance.toml");
+
+/// Keys of `--config` (a flat TOML file), with what each accepts.
+const KEYS: &[(&str, &str)] = &[
+    ("cpu", "the CPU of the control loop thread (also in the control unit's CPUAffinity=, with the housekeeping CPUs), an online CPU number"),
+    ("fifo_priority", "the loop thread's SCHED_FIFO priority, an integer 1..=98"),
+    ("housekeeping_cpus", "CPUs of the robot side and the agent, a string such as \"0-2\" or \"0,2\""),
+    ("render_hz", "camera frames per second of the robot side, a number 0..=60 (0: no rendering)"),
+    ("trace", "record and judge every episode under /var/lib/r2g/<instance>/traces, true or false"),
+    ("agent_llm", "the agent batch's LLM: \"scripted\", \"scripted:<conversation.json>\" or an endpoint TOML file"),
+    ("agent_episodes", "episodes of the agent batch, an integer 1..=100000"),
+];
+
+#[derive(Subcommand, Debug)]
+pub enum ServiceCmd {
+    /// Write the systemd units and the configuration of one instance (deploy/README.md):
+    /// unit templates and per-instance drop-ins under <root>/etc/systemd/system, the instance's
+    /// files under <root>/etc/r2g/<instance>, its folders (tmpfiles.d) and the users
+    /// (sysusers.d). Every value is checked first; on any error nothing is written.
+    Install {
+        /// Gym name (see `r2g gyms`), gym folder or scene file; or a robot config (a `.json`
+        /// file in robot-skill/config/robot.json's format), then --gym names the scene.
+        gym_or_robot_config: String,
+        /// Instance name: the systemd instance and the iceoryx2 service prefix (r2g/<name>/...).
+        #[arg(long)]
+        instance: String,
+        /// CPU of the control loop (overrides `cpu` of --config; default: the last online CPU).
+        #[arg(long)]
+        cpu: Option<usize>,
+        /// Install under this folder instead of / (packaging, tests).
+        #[arg(long, default_value = "/")]
+        root: PathBuf,
+        /// Instance settings, a flat TOML file (`key = value`): cpu, fifo_priority,
+        /// housekeeping_cpus, render_hz, trace, agent_llm, agent_episodes (deploy/README.md).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// With a robot config: the gym (name, folder or scene file) whose scene gives the robot
+        /// model, the table and the workspace.
+        #[arg(long)]
+        gym: Option<String>,
+        /// Folder holding r2g, r2g-control and r2g-sim (default: the folder of this r2g).
+        #[arg(long)]
+        bin_dir: Option<PathBuf>,
+    },
+    /// Tick health of a running instance, asked from its control process over the operator
+    /// socket, and the states of its units when systemd runs here. Exit status 0 only when the
+    /// control process answered with no fault and its robot side present.
+    Status {
+        #[arg(long, default_value = "default")]
+        instance: String,
+        /// Print the control process's answer as one JSON line instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+pub fn run(cmd: ServiceCmd) -> anyhow::Result<i32> {
+    match cmd {
+        ServiceCmd::Install { gym_or_robot_config, instance, cpu, root, config, gym, bin_dir } => {
+            let args = InstallArgs { target: gym_or_robot_config, instance, cpu, root, config, gym, bin_dir };
+            let plan = plan(&args)?;
+            write_all(&args.root, &plan)?;
+            report(&args.root, &plan);
+            Ok(0)
+        }
+        ServiceCmd::Status { instance, json } => status(&instance, json),
+    }
+}
+
+struct InstallArgs {
+    target: String,
+    instance: String,
+    cpu: Option<usize>,
+    root: PathBuf,
+    config: Option<PathBuf>,
+    gym: Option<String>,
+    bin_dir: Option<PathBuf>,
+}
+
+/// The values of one instance, checked.
+#[derive(Debug)]
+struct Settings {
+    cpu: usize,
+    fifo_priority: i64,
+    housekeeping_cpus: Vec<usize>,
+    render_hz: f64,
+    trace: bool,
+    agent_llm: String,
+    agent_episodes: i64,
+}
+
+/// What `install` writes: paths relative to the root, contents, and notes for the person.
+struct Plan {
+    instance: String,
+    files: Vec<(PathBuf, String)>,
+    notes: Vec<String>,
+}
+
+/// A value of the flat TOML subset `--config` accepts.
+#[derive(Debug, Clone, PartialEq)]
+enum Value {
+    Str(String),
+    Int(i64),
+    Float(f64),
+    Bool(bool),
+}
+
+impl Value {
+    fn kind(&self) -> &'static str {
+        match self {
+            Value::Str(_) => "a string",
+            Value::Int(_) => "an integer",
+            Value::Float(_) => "a number",
+            Value::Bool(_) => "a boolean",
+        }
+    }
+}
+
+fn accepted_keys() -> String {
+    KEYS.iter().map(|(k, _)| *k).collect::<Vec<_>>().join(", ")
+}
+
+fn what(key: &str) -> &'static str {
+    KEYS.iter().find(|(k, _)| *k == key).map_or("", |(_, w)| w)
+}
+
+/// Parses the instance settings: a TOML file of top-level `key = value` lines (strings,
+/// integers, numbers, booleans). Unknown keys, tables and arrays are refused with the key.
+fn parse_config(text: &str, file: &Path) -> anyhow::Result<BTreeMap<String, Value>> {
+    let table: toml::Table = toml::from_str(text).with_context(|| format!("{} is not valid TOML", file.display()))?;
+    let mut out = BTreeMap::new();
+    for (key, v) in table {
+        if !KEYS.iter().any(|(k, _)| *k == key) {
+            bail!("{}: unknown key \"{key}\"; accepted keys: {}", file.display(), accepted_keys());
+        }
+        let value = match v {
+            toml::Value::String(s) => Value::Str(s),
+            toml::Value::Integer(n) => Value::Int(n),
+            toml::Value::Float(x) if x.is_finite() => Value::Float(x),
+            toml::Value::Boolean(b) => Value::Bool(b),
+            other => bail!(
+                "{}: key \"{key}\" ({}) must be a string, an integer, a number or a boolean, not {}",
+                file.display(),
+                what(&key),
+                other.type_str()
+            ),
+        };
+        out.insert(key, value);
+    }
+    Ok(out)
+}
+
+/// The CPUs the kernel has online (isolated ones included), from sysfs; else as many as this
+/// process may use.
+fn online_cpus() -> Vec<usize> {
+    if let Ok(s) = std::fs::read_to_string("/sys/devices/system/cpu/online") {
+        if let Ok(v) = parse_cpu_list(s.trim()) {
+            if !v.is_empty() {
+                return v;
+            }
+        }
+    }
+    (0..std::thread::available_parallelism().map_or(1, |n| n.get())).collect()
+}
+
+/// "0-2,4" or "0 1 2" → [0, 1, 2, 4] (sorted, no duplicates).
+fn parse_cpu_list(s: &str) -> anyhow::Result<Vec<usize>> {
+    let mut out = Vec::new();
+    for part in s.split(|c: char| c == ',' || c.is_whitespace()).filter(|p| !p.is_empty()) {
+        let num = |t: &str| t.trim().parse::<usize>().with_context(|| format!("{t:?} is not a CPU number"));
+        match part.split_once('-') {
+            Some((a, b)) => {
+                let (a, b) = (num(a)?, num(b)?);
+                if a > b {
+                    bail!("range {part} runs backwards");
+                }
+                out.extend(a..=b);
+            }
+            None => out.push(num(part)?),
+        }
+    }
+    if out.is_empty() {
+        bail!("no CPU given");
+    }
+    out.sort_unstable();
+    out.dedup();
+    Ok(out)
+}
+
+fn show_cpus(cpus: &[usize]) -> String {
+    // Ranges where they are contiguous, systemd's and the kernel's notation.
+    let mut parts = Vec::new();
+    let mut i = 0;
+    while i < cpus.len() {
+        let mut j = i;
+        while j + 1 < cpus.len() && cpus[j + 1] == cpus[j] + 1 {
+            j += 1;
+        }
+        parts.push(if j > i { format!("{}-{}", cpus[i], cpus[j]) } else { cpus[i].to_string() });
+        i = j + 1;
+    }
+    parts.join(",")
+}
+
+fn settings(args: &InstallArgs) -> anyhow::Result<Settings> {
+    let cfg = match &args.config {
+        Some(p) => {
+            let text =
+                std::fs::read_to_string(p).with_context(|| format!("--config {}: cannot read it", p.display()))?;
+            parse_config(&text, p)?
+        }
+        None => BTreeMap::new(),
+    };
+    let origin = |key: &str| match &args.config {
+        Some(p) => format!("{key} (in {})", p.display()),
+        None => key.to_string(),
+    };
+    let online = online_cpus();
+    let online_shown = show_cpus(&online);
+    let int = |key: &str, lo: i64, hi: i64, default: i64| -> anyhow::Result<i64> {
+        match cfg.get(key) {
+            None => Ok(default),
+            Some(Value::Int(n)) if (lo..=hi).contains(n) => Ok(*n),
+            Some(Value::Int(n)) => bail!("{} = {n} is out of range: {}", origin(key), what(key)),
+            Some(v) => bail!("{} is {}: {}", origin(key), v.kind(), what(key)),
+        }
+    };
+    let cpu = match (&args.cpu, cfg.get("cpu")) {
+        (Some(n), _) => {
+            let n = *n;
+            if !online.contains(&n) {
+                bail!("--cpu {n} is out of range: this machine's online CPUs are {online_shown}");
+            }
+            n
+        }
+        (None, Some(Value::Int(n))) => {
+            if *n < 0 || !online.contains(&(*n as usize)) {
+                bail!("{} = {n} is out of range: this machine's online CPUs are {online_shown}", origin("cpu"));
+            }
+            *n as usize
+        }
+        (None, Some(v)) => bail!("{} is {}: {}", origin("cpu"), v.kind(), what("cpu")),
+        (None, None) => *online.last().context("no online CPU")?,
+    };
+    let fifo_priority = int("fifo_priority", 1, 98, 80)?;
+    let housekeeping_cpus = match cfg.get("housekeeping_cpus") {
+        None => {
+            let rest: Vec<usize> = online.iter().copied().filter(|&c| c != cpu).collect();
+            if rest.is_empty() {
+                online.clone()
+            } else {
+                rest
+            }
+        }
+        Some(Value::Str(s)) => {
+            let v = parse_cpu_list(s)
+                .with_context(|| format!("{} = {s:?}: {}", origin("housekeeping_cpus"), what("housekeeping_cpus")))?;
+            if let Some(bad) = v.iter().find(|c| !online.contains(c)) {
+                bail!(
+                    "{} = {s:?}: CPU {bad} is out of range: this machine's online CPUs are {online_shown}",
+                    origin("housekeeping_cpus")
+                );
+            }
+            v
+        }
+        Some(v) => bail!("{} is {}: {}", origin("housekeeping_cpus"), v.kind(), what("housekeeping_cpus")),
+    };
+    let render_hz = match cfg.get("render_hz") {
+        None => 10.0,
+        Some(Value::Int(n)) if (0..=60).contains(n) => *n as f64,
+        Some(Value::Float(x)) if (0.0..=60.0).contains(x) => *x,
+        Some(v @ (Value::Int(_) | Value::Float(_))) => {
+            bail!("{} = {} is out of range: {}", origin("render_hz"), show(v), what("render_hz"))
+        }
+        Some(v) => bail!("{} is {}: {}", origin("render_hz"), v.kind(), what("render_hz")),
+    };
+    let trace = match cfg.get("trace") {
+        None => true,
+        Some(Value::Bool(b)) => *b,
+        Some(v) => bail!("{} is {}: {}", origin("trace"), v.kind(), what("trace")),
+    };
+    let agent_llm = match cfg.get("agent_llm") {
+        None => "scripted".to_string(),
+        Some(Value::Str(s)) => s.clone(),
+        Some(v) => bail!("{} is {}: {}", origin("agent_llm"), v.kind(), what("agent_llm")),
+    };
+    let agent_episodes = int("agent_episodes", 1, 100_000, 10)?;
+    if housekeeping_cpus.contains(&cpu) {
+        bail!(
+            "{} holds CPU {cpu}, the control loop's own CPU: give the other CPUs ({})",
+            origin("housekeeping_cpus"),
+            what("housekeeping_cpus")
+        );
+    }
+    Ok(Settings { cpu, fifo_priority, housekeeping_cpus, render_hz, trace, agent_llm, agent_episodes })
+}
+
+fn show(v: &Value) -> String {
+    match v {
+        Value::Str(s) => format!("{s:?}"),
+        Value::Int(n) => n.to_string(),
+        Value::Float(x) => format!("{x:?}"),
+        Value::Bool(b) => b.to_string(),
+    }
+}
+
+/// Instance names are what both iceoryx2 (the service prefix) and systemd (the `%i` of the
+/// templates) take without escaping.
+fn check_instance(name: &str) -> anyhow::Result<()> {
+    let ok =
+        !name.is_empty() && name.len() <= 32 && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-');
+    if !ok {
+        bail!(
+            "--instance {name:?}: an instance name is 1-32 characters of A-Z a-z 0-9 _ - (it is the systemd \
+             instance and the iceoryx2 service prefix)"
+        );
+    }
+    ipc_schema::Services::new(name).map_err(|e| anyhow::anyhow!("--instance {name:?}: {e}"))?;
+    Ok(())
+}
+
+/// A path a unit file can carry as it is, and that the units' sandbox can see.
+fn check_path(what: &str, p: &Path) -> anyhow::Result<String> {
+    let s = p.to_str().with_context(|| format!("{what} {} is not UTF-8", p.display()))?.to_string();
+    if let Some(c) = s.chars().find(|c| c.is_whitespace() || c.is_control() || "%$\"'\\;".contains(*c)) {
+        bail!("{what} {s}: the character {c:?} cannot stand in a unit file; move it to a path without it");
+    }
+    for hidden in ["/home", "/root", "/run/user"] {
+        if s == hidden || s.starts_with(&format!("{hidden}/")) {
+            bail!(
+                "{what} {s} is under {hidden}, which the units hide (ProtectHome=yes): keep the checkout, its \
+                 .venv and the binaries outside /home, /root and /run/user (e.g. under /opt)"
+            );
+        }
+    }
+    Ok(s)
+}
+
+fn absolute(p: &Path) -> anyhow::Result<PathBuf> {
+    std::fs::canonicalize(p).with_context(|| format!("{} does not exist", p.display()))
+}
+
+fn is_executable(p: &Path) -> bool {
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::metadata(p).is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+}
+
+/// Everything `install` would write, after checking every input; writes nothing.
+fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
+    let name = args.instance.as_str();
+    check_instance(name)?;
+    let s = settings(args)?;
+    let mut notes = Vec::new();
+
+    // The scene and the robot config.
+    let is_robot_config = args.target.to_ascii_lowercase().ends_with(".json");
+    let (gym, robot_config) = if is_robot_config {
+        let Some(gym) = &args.gym else {
+            bail!(
+                "{} is a robot config: give the gym whose scene it drives with --gym NAME (the scene gives the robot \
+                 model, the table and the workspace r2g-control checks chunks against)",
+                args.target
+            );
+        };
+        (gym.clone(), PathBuf::from(&args.target))
+    } else {
+        if args.gym.is_some() {
+            bail!("--gym is only for a robot config argument (a .json file); {} is already the gym", args.target);
+        }
+        (args.target.clone(), launch::default_robot_config())
+    };
+    let scene = launch::resolve_scene(&gym).with_context(|| format!("gym {gym:?}"))?;
+    let scene = check_path("the scene", &absolute(&scene)?)?;
+    let robot_json = std::fs::read_to_string(&robot_config)
+        .with_context(|| format!("robot config {}: cannot read it", robot_config.display()))?;
+    runtime::RobotConfig::parse(&robot_json).with_context(|| format!("robot config {}", robot_config.display()))?;
+
+    // The binaries the units run.
+    let bin_dir = match &args.bin_dir {
+        Some(d) => absolute(d).with_context(|| format!("--bin-dir {}", d.display()))?,
+        None => {
+            let exe = std::env::current_exe().context("locating this r2g")?;
+            absolute(exe.parent().context("r2g has no folder")?)?
+        }
+    };
+    for b in ["r2g", "r2g-control", "r2g-sim"] {
+        if !is_executable(&bin_dir.join(b)) {
+            bail!(
+                "{} has no executable {b}: build the workspace (cargo build --release) or pass --bin-dir with the \
+                 folder of the installed binaries",
+                bin_dir.display()
+            );
+        }
+    }
+    let bin = check_path("the binaries' folder", &bin_dir)?;
+
+    // The checkout the binaries read (gyms, robot descriptions, skill documents, the venv).
+    let gyms = check_path("the gyms folder", &absolute(&launch::gyms_dir())?)?;
+    let robots = check_path("the robots folder", &absolute(&launch::robots_dir())?)?;
+    let skill = match std::env::var_os("R2G_SKILL") {
+        Some(d) => PathBuf::from(d),
+        None => Path::new(&gyms).parent().context("the gyms folder has no parent")?.join("robot-skill"),
+    };
+    let skill = check_path("the robot-skill folder", &absolute(&skill)?)?;
+
+    // Only the optional agent unit runs Python: a venv it cannot use is worth a note, not a refusal.
+    if let Some(checkout) = Path::new(&gyms).parent() {
+        let venv_python = checkout.join(".venv/bin/python");
+        match absolute(&venv_python) {
+            Err(_) => notes.push(format!(
+                "{} is missing: r2g-agent@{name} needs it (make venv); the other units do not",
+                venv_python.display()
+            )),
+            Ok(p) => {
+                if let Err(e) = check_path("the venv's interpreter", &p) {
+                    notes.push(format!("r2g-agent@{name} cannot start its Python: {e:#}"));
+                }
+            }
+        }
+    }
+
+    // The agent batch's LLM.
+    let etc = format!("/etc/r2g/{name}");
+    let mut files: Vec<(PathBuf, String)> = Vec::new();
+    let agent_llm = if s.agent_llm == "scripted" {
+        s.agent_llm.clone()
+    } else if let Some(conv) = s.agent_llm.strip_prefix("scripted:") {
+        let p = absolute(Path::new(conv))
+            .with_context(|| format!("agent_llm = {:?}: {}", s.agent_llm, what("agent_llm")))?;
+        let p = check_path("agent_llm's conversation", &p)?;
+        format!("scripted:{p}")
+    } else {
+        let p = Path::new(&s.agent_llm);
+        agent_host::llm::EndpointConfig::load(p)
+            .with_context(|| format!("agent_llm = {:?}: {}", s.agent_llm, what("agent_llm")))?;
+        let text = std::fs::read_to_string(p)?;
+        files.push((PathBuf::from(format!("etc/r2g/{name}/agent-endpoint.toml")), text));
+        format!("{etc}/agent-endpoint.toml")
+    };
+
+    // Unit templates, shared by every instance.
+    let templates = [
+        ("r2g@.target", TARGET_UNIT),
+        ("r2g-control@.service", CONTROL_UNIT),
+        ("r2g-sim@.service", SIM_UNIT),
+        ("r2g-agent@.service", AGENT_UNIT),
+    ];
+    for (file, text) in templates {
+        let rel = PathBuf::from("etc/systemd/system").join(file);
+        let text = text.replace("@BIN_DIR@", &bin);
+        if let Ok(old) = std::fs::read_to_string(args.root.join(&rel)) {
+            if old != text {
+                notes.push(format!("replaced {} (it differed; every instance uses it)", rel.display()));
+            }
+        }
+        files.push((rel, text));
+    }
+
+    // Per-instance drop-ins.
+    let header = format!(
+        "# Written by `r2g service install` for instance {name}; the values are in {etc}/instance.toml.\n\
+         # Install again (with --config {etc}/instance.toml) rather than editing this file.\n[Service]\n"
+    );
+    let checkout = format!("Environment=R2G_GYMS={gyms} R2G_ROBOTS={robots} R2G_SKILL={skill}\n");
+    let others = show_cpus(&s.housekeeping_cpus).replace(',', " ");
+    // The control process may use the housekeeping CPUs and the loop's CPU; the loop thread pins
+    // itself to the latter, so its side threads (notifier, operator socket) stay off it.
+    let mut control_cpus = s.housekeeping_cpus.clone();
+    control_cpus.push(s.cpu);
+    control_cpus.sort_unstable();
+    let control = format!(
+        "{header}Environment=R2G_SCENE={scene}\nEnvironment=R2G_CPU={} R2G_FIFO_PRIORITY={}\n{checkout}\
+         CPUAffinity={}\nLimitRTPRIO={}\n",
+        s.cpu,
+        s.fifo_priority,
+        show_cpus(&control_cpus).replace(',', " "),
+        s.fifo_priority
+    );
+    let sim_args = if s.trace { format!("--trace-dir /var/lib/r2g/{name}/traces") } else { String::new() };
+    let sim = format!(
+        "{header}Environment=R2G_SCENE={scene}\nEnvironment=R2G_RENDER_HZ={}\nEnvironment=\"R2G_SIM_ARGS={sim_args}\"\n\
+         {checkout}CPUAffinity={others}\n",
+        s.render_hz
+    );
+    let agent = format!(
+        "{header}Environment=R2G_SCENE={scene}\nEnvironment=R2G_AGENT_LLM={agent_llm} R2G_AGENT_EPISODES={}\n\
+         {checkout}CPUAffinity={others}\n",
+        s.agent_episodes
+    );
+    for (unit, text) in [("r2g-control", control), ("r2g-sim", sim), ("r2g-agent", agent)] {
+        files.push((PathBuf::from(format!("etc/systemd/system/{unit}@{name}.service.d/10-r2g.conf")), text));
+    }
+
+    // The instance's own files.
+    files.push((PathBuf::from(format!("etc/r2g/{name}/iceoryx2.toml")), ICEORYX2.replace("@INSTANCE@", name)));
+    files.push((PathBuf::from(format!("etc/r2g/{name}/robot.json")), robot_json));
+    let instance_toml = format!(
+        "# r2g instance {name}, written by `r2g service install` (r2g {}).\n\
+         # gym: {scene}\n\
+         # robot config: {} (copied to {etc}/robot.json)\n\
+         # binaries: {bin}\n\
+         # `r2g service install {} --instance {name} --config {etc}/instance.toml` writes the same again.\n\
+         cpu = {}\n\
+         fifo_priority = {}\n\
+         housekeeping_cpus = \"{}\"\n\
+         render_hz = {:?}\n\
+         trace = {}\n\
+         agent_llm = {:?}\n\
+         agent_episodes = {}\n",
+        env!("CARGO_PKG_VERSION"),
+        absolute(&robot_config)?.display(),
+        if is_robot_config { format!("{} --gym {gym}", args.target) } else { gym.clone() },
+        s.cpu,
+        s.fifo_priority,
+        show_cpus(&s.housekeeping_cpus),
+        s.render_hz,
+        s.trace,
+        s.agent_llm,
+        s.agent_episodes,
+    );
+    files.push((PathBuf::from(format!("etc/r2g/{name}/instance.toml")), instance_toml));
+    files.push((PathBuf::from(format!("etc/tmpfiles.d/r2g-{name}.conf")), TMPFILES.replace("@INSTANCE@", name)));
+    files.push((PathBuf::from("etc/sysusers.d/r2g.conf"), SYSUSERS.to_string()));
+    Ok(Plan { instance: name.to_string(), files, notes })
+}
+
+/// Writes every file to a temporary name beside it, then renames them all into place; on an
+/// error before the renames, the temporary files are removed and nothing has changed.
+fn write_all(root: &Path, plan: &Plan) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut temps: Vec<(PathBuf, PathBuf)> = Vec::new();
+    let result = (|| -> anyhow::Result<()> {
+        for (rel, text) in &plan.files {
+            let path = root.join(rel);
+            let dir = path.parent().context("file without a folder")?;
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            let file_name = path.file_name().context("file without a name")?.to_string_lossy();
+            let tmp = dir.join(format!(".{file_name}.tmp-{}", std::process::id()));
+            let mut f = std::fs::File::create(&tmp).with_context(|| format!("writing {}", tmp.display()))?;
+            temps.push((tmp.clone(), path.clone()));
+            f.write_all(text.as_bytes()).with_context(|| format!("writing {}", tmp.display()))?;
+            f.sync_all().with_context(|| format!("writing {}", tmp.display()))?;
+        }
+        Ok(())
+    })();
+    if let Err(e) = result {
+        for (tmp, _) in &temps {
+            let _ = std::fs::remove_file(tmp);
+        }
+        return Err(e);
+    }
+    for (tmp, path) in &temps {
+        std::fs::rename(tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
+    }
+    Ok(())
+}
+
+fn report(root: &Path, plan: &Plan) {
+    let name = &plan.instance;
+    for (rel, _) in &plan.files {
+        println!("wrote {}", root.join(rel).display());
+    }
+    for n in &plan.notes {
+        eprintln!("r2g service install: {n}");
+    }
+    println!(
+        "next, as root:\n  systemd-sysusers /etc/sysusers.d/r2g.conf\n  systemd-tmpfiles --create \
+         /etc/tmpfiles.d/r2g-{name}.conf\n  systemctl daemon-reload\n  systemctl start r2g@{name}.target\n  r2g \
+         service status --instance {name}"
+    );
+}
+
+/// Whether systemd is the service manager here (its own test: /run/systemd/system exists).
+fn systemd_running() -> bool {
+    Path::new("/run/systemd/system").is_dir()
+}
+
+fn status(instance: &str, json: bool) -> anyhow::Result<i32> {
+    check_instance(instance)?;
+    // An installed instance's socket is under /run/r2g, which `run_dir` looks in by itself.
+    let answer = runtime::operator::status(instance);
+    if json {
+        match &answer {
+            Ok(v) => println!("{v}"),
+            Err(e) => println!("{}", serde_json::json!({"ok": false, "error": format!("{e:#}")})),
+        }
+    } else {
+        match &answer {
+            Ok(v) => print_status(v),
+            Err(e) => println!("control process: not reachable: {e:#}"),
+        }
+        units(instance);
+    }
+    Ok(match answer {
+        Ok(v) if v["fault"] == "none" && v["robot_lost"] == false => 0,
+        _ => 1,
+    })
+}
+
+fn print_status(v: &serde_json::Value) {
+    let num = |k: &str| v[k].as_f64().map_or_else(|| "?".to_string(), |x| format!("{x}"));
+    let fixed = |k: &str, unit: &str| v[k].as_f64().map_or_else(|| "?".to_string(), |x| format!("{x:.1} {unit}"));
+    let text = |k: &str| v[k].as_str().map_or_else(|| v[k].to_string(), str::to_string);
+    let rows = [
+        ("instance", text("instance")),
+        ("pid", num("pid")),
+        ("mode", text("mode")),
+        ("uptime", fixed("uptime_s", "s")),
+        ("ticks", num("ticks")),
+        ("overruns (missed deadlines)", num("overruns")),
+        ("wake latency, max of last 1 s", fixed("wake_max_us", "us")),
+        ("age of the last robot state", fixed("state_age_ms", "ms")),
+        ("robot lost", if v["robot_lost"] == true { "YES".into() } else { "no".into() }),
+        ("fault", text("fault")),
+        ("agent port errors", num("agent_port_errors")),
+        (
+            "systemd watchdog",
+            match v["watchdog_usec"].as_u64() {
+                Some(0) | None => "off".to_string(),
+                Some(us) => format!("{} ms", us / 1000),
+            },
+        ),
+    ];
+    for (k, val) in rows {
+        println!("{k:<31} {val}");
+    }
+}
+
+fn units(instance: &str) {
+    if !systemd_running() {
+        let init = std::fs::read_to_string("/proc/1/comm").unwrap_or_default();
+        println!("systemd is not running here (PID 1 is {}): no unit states", init.trim());
+        return;
+    }
+    for unit in [
+        format!("r2g@{instance}.target"),
+        format!("r2g-control@{instance}.service"),
+        format!("r2g-sim@{instance}.service"),
+        format!("r2g-agent@{instance}.service"),
+    ] {
+        let state = std::process::Command::new("systemctl")
+            .args(["is-active", &unit])
+            .output()
+            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+            .unwrap_or_else(|e| format!("systemctl failed: {e}"));
+        println!("{:<31} {state}", unit);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn flat_toml_values_and_refusals() {
+        let f = Path::new("x.toml");
+        let c = parse_config("cpu = 3 # loop\nrender_hz = 12.5\ntrace = false\nagent_llm = \"a#b\"\n", f).unwrap();
+        assert_eq!(c["cpu"], Value::Int(3));
+        assert_eq!(c["render_hz"], Value::Float(12.5));
+        assert_eq!(c["trace"], Value::Bool(false));
+        assert_eq!(c["agent_llm"], Value::Str("a#b".into()));
+        let e = parse_config("cpus = 1\n", f).unwrap_err().to_string();
+        assert!(e.contains("unknown key \"cpus\"") && e.contains("accepted keys: cpu,"), "{e}");
+        assert!(parse_config("[x]\n", f).is_err());
+        assert!(parse_config("cpu = [1]\n", f).is_err());
+        assert!(parse_config("cpu = 1\ncpu = 2\n", f).is_err());
+    }
+
+    #[test]
+    fn cpu_lists() {
+        assert_eq!(parse_cpu_list("0-2,4").unwrap(), vec![0, 1, 2, 4]);
+        assert_eq!(parse_cpu_list("3 1 1").unwrap(), vec![1, 3]);
+        assert!(parse_cpu_list("2-1").is_err());
+        assert_eq!(show_cpus(&[0, 1, 2, 4, 6, 7]), "0-2,4,6-7");
+    }
+}

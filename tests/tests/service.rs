@@ -1,0 +1,271 @@
+//! `r2g service install` (deploy/): the units it writes pass the real `systemd-analyze verify`
+//! without a warning, the control unit's sandbox scores at most 3.0 in `systemd-analyze security
+//! --offline=yes`, the users, folders and iceoryx2 configuration it ships are what the real
+//! systemd-sysusers, systemd-tmpfiles and iceoryx2 make of them, and bad input is refused with
+//! the key and what is accepted, writing nothing. systemd need not run here (it is not PID 1 in
+//! CI); these commands work offline.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use integration_tests::r2g;
+
+const GYM: &str = "pick_block_plate";
+
+/// A folder under the system temp dir, removed on drop (also when the test fails).
+struct Temp(PathBuf);
+
+impl Temp {
+    fn new(tag: &str) -> Self {
+        let p = std::env::temp_dir().join(format!("r2g-service-{}-{tag}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).expect("temp dir");
+        Self(p)
+    }
+}
+
+impl Drop for Temp {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn tool(name: &str) -> PathBuf {
+    for dir in std::env::var("PATH").unwrap_or_default().split(':').chain(["/usr/bin", "/bin"]) {
+        let p = Path::new(dir).join(name);
+        if p.is_file() {
+            return p;
+        }
+    }
+    panic!("{name} not found: install the Debian systemd package (scripts/install-deps.sh does)");
+}
+
+fn run(cmd: &mut Command) -> Output {
+    let out = cmd.output().unwrap_or_else(|e| panic!("running {cmd:?}: {e}"));
+    eprintln!("$ {cmd:?}\n{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    out
+}
+
+fn install(root: &Path, args: &[&str]) -> Output {
+    run(Command::new(r2g()).args(["service", "install"]).args(args).arg("--root").arg(root))
+}
+
+fn installed(tag: &str, args: &[&str]) -> (Temp, String) {
+    let root = Temp::new(tag);
+    let name = integration_tests::instance(tag);
+    let mut all = vec![GYM, "--instance", &name];
+    all.extend_from_slice(args);
+    let out = install(&root.0, &all);
+    assert!(out.status.success(), "install failed: {}", String::from_utf8_lossy(&out.stderr));
+    (root, name)
+}
+
+fn units(name: &str) -> [String; 4] {
+    [
+        format!("r2g-control@{name}.service"),
+        format!("r2g-sim@{name}.service"),
+        format!("r2g-agent@{name}.service"),
+        format!("r2g@{name}.target"),
+    ]
+}
+
+#[test]
+fn every_installed_unit_verifies_without_a_warning() {
+    let (root, name) = installed("verify", &[]);
+    let dir = root.0.join("etc/systemd/system");
+    for unit in units(&name) {
+        // An instance path next to its template: verify loads the template, the instance's
+        // drop-ins (r2g-control@NAME.service.d/) and checks that every ExecStart binary exists.
+        let out = run(Command::new(tool("systemd-analyze")).arg("verify").arg(dir.join(&unit)));
+        assert!(out.status.success(), "systemd-analyze verify {unit} failed");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.trim().is_empty(), "systemd-analyze verify {unit} warned:\n{stderr}");
+    }
+    // The drop-ins were read: a bad one is reported (so the clean run above covered them).
+    let drop_in = dir.join(format!("r2g-control@{name}.service.d/20-probe.conf"));
+    std::fs::write(&drop_in, "[Service]\nNoSuchSetting=1\n").expect("probe drop-in");
+    let out = run(Command::new(tool("systemd-analyze")).arg("verify").arg(dir.join(&units(&name)[0])));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("NoSuchSetting"), "verify did not read the drop-ins");
+}
+
+/// "→ Overall exposure level for r2g-control@x.service: 0.6 SAFE 😀" → 0.6
+fn exposure(text: &str) -> Option<f64> {
+    let line = text.lines().find(|l| l.contains("Overall exposure level"))?;
+    line.rsplit(':').next()?.split_whitespace().next()?.parse().ok()
+}
+
+#[test]
+fn the_control_unit_exposure_is_at_most_3() {
+    let (root, name) = installed("security", &[]);
+    let dir = root.0.join("etc/systemd/system");
+    let mut scores = Vec::new();
+    // The target runs no process: only services have a sandbox to score.
+    for unit in &units(&name)[..3] {
+        let out = run(Command::new(tool("systemd-analyze"))
+            .args(["security", "--offline=yes", "--no-pager"])
+            .arg(dir.join(unit)));
+        assert!(out.status.success(), "systemd-analyze security {unit} failed");
+        let text = String::from_utf8_lossy(&out.stdout);
+        let score = exposure(&text).unwrap_or_else(|| panic!("no overall exposure for {unit}:\n{text}"));
+        scores.push((unit.clone(), score));
+    }
+    for (unit, score) in &scores {
+        println!("systemd-analyze security --offline=yes {unit}: exposure {score}");
+    }
+    assert!(scores[0].1 <= 3.0, "control unit exposure {} > 3.0", scores[0].1);
+}
+
+#[test]
+fn users_folders_and_iceoryx2_root_are_what_the_real_tools_make_of_them() {
+    let (root, name) = installed("files", &[]);
+    let r = &root.0;
+    // systemd-sysusers creates the users and groups in the root's own /etc/passwd and /etc/group.
+    let out = run(Command::new(tool("systemd-sysusers"))
+        .arg(format!("--root={}", r.display()))
+        .arg(r.join("etc/sysusers.d/r2g.conf")));
+    assert!(out.status.success(), "systemd-sysusers failed");
+    let passwd = std::fs::read_to_string(r.join("etc/passwd")).expect("passwd");
+    let group = std::fs::read_to_string(r.join("etc/group")).expect("group");
+    let id = |db: &str, n: &str| -> u32 {
+        let line = db.lines().find(|l| l.split(':').next() == Some(n)).unwrap_or_else(|| panic!("no {n}:\n{db}"));
+        line.split(':').nth(2).and_then(|v| v.parse().ok()).expect("numeric id")
+    };
+    let (r2g_uid, r2g_gid) = (id(&passwd, "r2g"), id(&group, "r2g"));
+    let agent_uid = id(&passwd, "r2g-agent");
+    assert_ne!(r2g_uid, agent_uid, "control and agent must be different users");
+    let _ = id(&group, "r2g-operator");
+    let r2g_members = group.lines().find(|l| l.starts_with("r2g:")).expect("group r2g");
+    assert!(r2g_members.ends_with(":r2g-agent"), "r2g-agent must be in group r2g: {r2g_members}");
+
+    // The iceoryx2 configuration moves the root path under the instance's run folder.
+    let cfg_path = r.join(format!("etc/r2g/{name}/iceoryx2.toml"));
+    use iceoryx2::prelude::SemanticString;
+    let file = iceoryx2::prelude::FilePath::new(cfg_path.to_str().expect("utf-8").as_bytes()).expect("file path");
+    let cfg = iceoryx2::config::Config::from_file(&file).expect("iceoryx2 loads the shipped config");
+    assert_eq!(cfg.global.root_path().to_string(), format!("/run/r2g/{name}/iceoryx2/"));
+
+    // systemd-tmpfiles creates the instance's folders with the users above (chown needs root).
+    // SAFETY: geteuid cannot fail.
+    if unsafe { libc::geteuid() } != 0 {
+        println!("not root: systemd-tmpfiles --create (which chowns) is not run");
+        return;
+    }
+    let out = run(Command::new(tool("systemd-tmpfiles"))
+        .arg(format!("--root={}", r.display()))
+        .arg("--create")
+        .arg(r.join(format!("etc/tmpfiles.d/r2g-{name}.conf"))));
+    assert!(out.status.success(), "systemd-tmpfiles failed");
+    use std::os::unix::fs::MetadataExt;
+    for (sub, mode) in [("", 0o711), ("/iceoryx2", 0o2770), ("/shm", 0o2770)] {
+        let p = r.join(format!("run/r2g/{name}{sub}"));
+        let m = std::fs::metadata(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        assert_eq!(m.mode() & 0o7777, mode, "{} mode {:o}", p.display(), m.mode() & 0o7777);
+        assert_eq!((m.uid(), m.gid()), (r2g_uid, r2g_gid), "{} owner", p.display());
+    }
+}
+
+#[test]
+fn the_instance_file_installs_the_same_again() {
+    let values = Temp::new("values");
+    let cfg = values.0.join("lab.toml");
+    std::fs::write(&cfg, "# a lab PC\ncpu = 0\nfifo_priority = 70\nrender_hz = 5\ntrace = false\n").expect("config");
+    let (root, name) = installed("again", &["--config", cfg.to_str().expect("utf-8")]);
+    let control = root.0.join(format!("etc/systemd/system/r2g-control@{name}.service.d/10-r2g.conf"));
+    let sim = root.0.join(format!("etc/systemd/system/r2g-sim@{name}.service.d/10-r2g.conf"));
+    let read = |p: &Path| std::fs::read_to_string(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+    let (c1, s1) = (read(&control), read(&sim));
+    for want in
+        ["CPUAffinity=0", "LimitRTPRIO=70\n", "R2G_CPU=0 R2G_FIFO_PRIORITY=70", "/gyms/pick_block_plate/scene.toml"]
+    {
+        assert!(c1.contains(want), "control drop-in lacks {want:?}:\n{c1}");
+    }
+    assert!(s1.contains("R2G_RENDER_HZ=5\n") && s1.contains("\"R2G_SIM_ARGS=\"\n"), "sim drop-in:\n{s1}");
+    let unit = read(&root.0.join("etc/systemd/system/r2g-control@.service"));
+    let exec = unit.lines().find(|l| l.starts_with("ExecStart=")).expect("ExecStart");
+    let bin = integration_tests::bin_dir().canonicalize().expect("bin dir");
+    assert!(exec.starts_with(&format!("ExecStart={}/r2g-control ", bin.display())), "{exec}");
+
+    let instance_toml = root.0.join(format!("etc/r2g/{name}/instance.toml"));
+    let out = install(&root.0, &[GYM, "--instance", &name, "--config", instance_toml.to_str().expect("utf-8")]);
+    assert!(out.status.success(), "reinstall failed");
+    assert_eq!(read(&control), c1);
+    assert_eq!(read(&sim), s1);
+}
+
+#[test]
+fn a_robot_config_with_its_gym_is_copied_into_the_instance() {
+    let inputs = Temp::new("robotcfg");
+    let robot = inputs.0.join("franka.json");
+    let text = "{\"profile\": \"franka\"}\n";
+    std::fs::write(&robot, text).expect("robot config");
+    let root = Temp::new("robotroot");
+    let name = integration_tests::instance("rc");
+    let out = install(&root.0, &[robot.to_str().expect("utf-8"), "--gym", GYM, "--instance", &name]);
+    assert!(out.status.success(), "install failed");
+    let copied = std::fs::read_to_string(root.0.join(format!("etc/r2g/{name}/robot.json"))).expect("copy");
+    assert_eq!(copied, text);
+    let drop_in = root.0.join(format!("etc/systemd/system/r2g-control@{name}.service.d/10-r2g.conf"));
+    let drop_in = std::fs::read_to_string(drop_in).expect("drop-in");
+    assert!(drop_in.contains("/gyms/pick_block_plate/scene.toml"), "{drop_in}");
+}
+
+/// Every file and folder under `dir`.
+fn entries(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).expect("read dir").flatten() {
+        out.push(e.path());
+        if e.path().is_dir() {
+            out.extend(entries(&e.path()));
+        }
+    }
+    out
+}
+
+#[test]
+fn bad_input_is_refused_with_the_key_and_writes_nothing() {
+    let inputs = Temp::new("inputs");
+    let file = |n: &str, text: &str| -> String {
+        let p = inputs.0.join(n);
+        std::fs::write(&p, text).expect("input file");
+        p.display().to_string()
+    };
+    let unknown = file("unknown.toml", "cpu = 0\ncpus = 1\n");
+    let far_cpu = file("far.toml", "cpu = 4096\n");
+    let prio = file("prio.toml", "fifo_priority = 99\n");
+    let kind = file("kind.toml", "render_hz = \"fast\"\n");
+    let table = file("table.toml", "[control]\ncpu = 0\n");
+    let robot = file("robot.json", "{\"profile\": \"simulation\"}\n");
+    let llm = file("llm.toml", "agent_llm = \"/nonexistent/endpoint.toml\"\n");
+    let empty_bin = inputs.0.join("bin");
+    std::fs::create_dir_all(&empty_bin).expect("bin dir");
+    let empty_bin = empty_bin.display().to_string();
+    let long = "x".repeat(33);
+    let cases: Vec<(Vec<&str>, Vec<&str>)> = vec![
+        (vec![GYM, "--instance", "ok1", "--config", &unknown], vec!["unknown key \"cpus\"", "accepted keys: cpu,"]),
+        (vec![GYM, "--instance", "ok1", "--cpu", "4096"], vec!["--cpu 4096 is out of range", "online CPUs are"]),
+        (
+            vec![GYM, "--instance", "ok1", "--config", &far_cpu],
+            vec!["cpu (in", "= 4096 is out of range", "online CPUs"],
+        ),
+        (vec![GYM, "--instance", "ok1", "--config", &prio], vec!["fifo_priority", "= 99 is out of range", "1..=98"]),
+        (vec![GYM, "--instance", "ok1", "--config", &kind], vec!["render_hz", "is a string", "0..=60"]),
+        (vec![GYM, "--instance", "ok1", "--config", &table], vec!["unknown key \"control\"", "accepted keys"]),
+        (vec!["no_such_gym", "--instance", "ok1"], vec!["no gym 'no_such_gym'", "pick_block_plate"]),
+        (vec![&robot, "--instance", "ok1"], vec!["is a robot config", "--gym"]),
+        (vec![GYM, "--instance", "ok1", "--config", &llm], vec!["agent_llm", "endpoint TOML file"]),
+        (vec![GYM, "--instance", "bad name"], vec!["--instance \"bad name\"", "A-Z a-z 0-9 _ -"]),
+        (vec![GYM, "--instance", &long], vec!["--instance", "1-32 characters"]),
+        (vec![GYM, "--instance", "ok1", "--bin-dir", &empty_bin], vec!["has no executable r2g", "--bin-dir"]),
+    ];
+    for (args, wanted) in cases {
+        let root = Temp::new("bad");
+        let out = install(&root.0, &args);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{args:?} must be refused: {stderr}");
+        for w in wanted {
+            assert!(stderr.contains(w), "{args:?}: the message lacks {w:?}:\n{stderr}");
+        }
+        let left = entries(&root.0);
+        assert!(left.is_empty(), "{args:?} wrote {left:?}");
+    }
+}
