@@ -107,7 +107,9 @@ enum Cmd {
     /// Write (or rewrite) the static HTML viewer of a run folder.
     View { run_dir: std::path::PathBuf },
     /// Operator only: clear an `operator_required` fault of a running instance (Franka profile),
-    /// after checking the arm and its surroundings.
+    /// after checking the arm and its surroundings. Sent over the instance's operator socket;
+    /// taken from root, the runtime's user or its `--operator-group`. Exits 0 when the runtime
+    /// took the request (it prints whether there was a fault), 1 when refused or unreachable.
     Clear {
         #[arg(long, default_value = "default")]
         instance: String,

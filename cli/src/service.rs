@@ -17,6 +17,7 @@ const TARGET_UNIT: &str = include_str!("../../deploy/systemd/r2g@.target");
 const SYSUSERS: &str = include_str!("../../deploy/sysusers.d/r2g.conf");
 const TMPFILES: &str = include_str!("../../deploy/tmpfiles.d/r2g@.conf");
 const ICEORYX2: &str = include_str!("../../deploy/iceoryx2/instance.toml");
+const ICEORYX2_AGENT: &str = include_str!("../../deploy/iceoryx2/agent.toml");
 
 /// Keys of `--config` (a flat TOML file), with what each accepts.
 const KEYS: &[(&str, &str)] = &[
@@ -509,8 +510,13 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
         files.push((PathBuf::from(format!("etc/systemd/system/{unit}@{name}.service.d/10-r2g.conf")), text));
     }
 
-    // The instance's own files.
+    // The instance's own files: the iceoryx2 configurations of the control instance and of the
+    // agent unit, which has folders of its own (deploy/README.md, "Shared memory").
     files.push((PathBuf::from(format!("etc/r2g/{name}/iceoryx2.toml")), ICEORYX2.replace("@INSTANCE@", name)));
+    files.push((
+        PathBuf::from(format!("etc/r2g/{name}/agent-iceoryx2.toml")),
+        ICEORYX2_AGENT.replace("@INSTANCE@", name),
+    ));
     files.push((PathBuf::from(format!("etc/r2g/{name}/robot.json")), robot_json));
     let instance_toml = format!(
         "# r2g instance {name}, written by `r2g service install` (r2g {}).\n\
@@ -539,7 +545,29 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
     files.push((PathBuf::from(format!("etc/r2g/{name}/instance.toml")), instance_toml));
     files.push((PathBuf::from(format!("etc/tmpfiles.d/r2g-{name}.conf")), TMPFILES.replace("@INSTANCE@", name)));
     files.push((PathBuf::from("etc/sysusers.d/r2g.conf"), SYSUSERS.to_string()));
+
+    // systemd-sysusers adds memberships but never removes one: a machine installed before still
+    // has r2g-agent in group r2g, which would let the agent's user into the control instance's
+    // shared memory.
+    if let Ok(group) = std::fs::read_to_string(args.root.join("etc/group")) {
+        if agent_in_control_group(&group) {
+            notes.push(
+                "user r2g-agent is a member of group r2g (from an earlier install; systemd-sysusers never removes a \
+                 membership), so it can enter the control instance's shared memory: remove it with \
+                 gpasswd -d r2g-agent r2g"
+                    .to_string(),
+            );
+        }
+    }
     Ok(Plan { instance: name.to_string(), files, notes })
+}
+
+/// Whether /etc/group (its text) lists user r2g-agent as a member of group r2g.
+fn agent_in_control_group(group: &str) -> bool {
+    let Some(line) = group.lines().find(|l| l.split(':').next() == Some("r2g")) else {
+        return false;
+    };
+    line.split(':').nth(3).is_some_and(|members| members.split(',').any(|m| m.trim() == "r2g-agent"))
 }
 
 /// Writes every file to a temporary name beside it, then renames them all into place; on an
@@ -682,6 +710,15 @@ mod tests {
         assert!(parse_config("[x]\n", f).is_err());
         assert!(parse_config("cpu = [1]\n", f).is_err());
         assert!(parse_config("cpu = 1\ncpu = 2\n", f).is_err());
+    }
+
+    #[test]
+    fn a_leftover_agent_membership_in_group_r2g_is_found() {
+        assert!(agent_in_control_group("root:x:0:\nr2g:x:990:r2g-agent\n"));
+        assert!(agent_in_control_group("r2g:x:990:alice,r2g-agent\n"));
+        assert!(!agent_in_control_group("r2g:x:990:\nr2g-agent:x:989:\n"));
+        assert!(!agent_in_control_group("r2g-operator:x:988:r2g-agent\n"));
+        assert!(!agent_in_control_group(""));
     }
 
     #[test]

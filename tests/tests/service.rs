@@ -1,9 +1,10 @@
 //! `r2g service install` (deploy/): the units it writes pass the real `systemd-analyze verify`
 //! without a warning, the control unit's sandbox scores at most 3.0 in `systemd-analyze security
-//! --offline=yes`, the users, folders and iceoryx2 configuration it ships are what the real
-//! systemd-sysusers, systemd-tmpfiles and iceoryx2 make of them, and bad input is refused with
-//! the key and what is accepted, writing nothing. systemd need not run here (it is not PID 1 in
-//! CI); these commands work offline.
+//! --offline=yes`, the users, folders and iceoryx2 configurations it ships are what the real
+//! systemd-sysusers, systemd-tmpfiles and iceoryx2 make of them, the agent unit and its user
+//! stay out of the control instance's folders (iceoryx2's segments there are writable by whoever
+//! enters them), and bad input is refused with the key and what is accepted, writing nothing.
+//! systemd need not run here (it is not PID 1 in CI); these commands work offline.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -115,6 +116,33 @@ fn the_control_unit_exposure_is_at_most_3() {
     assert!(scores[0].1 <= 3.0, "control unit exposure {} > 3.0", scores[0].1);
 }
 
+/// The root path of an iceoryx2 configuration file, as iceoryx2's own loader reads it.
+fn iceoryx2_root(cfg_path: &Path) -> String {
+    use iceoryx2::prelude::SemanticString;
+    let file = iceoryx2::prelude::FilePath::new(cfg_path.to_str().expect("utf-8").as_bytes()).expect("file path");
+    let cfg = iceoryx2::config::Config::from_file(&file)
+        .unwrap_or_else(|e| panic!("iceoryx2 cannot load {}: {e:?}", cfg_path.display()));
+    cfg.global.root_path().to_string()
+}
+
+/// Whether a process of `uid`/`gid` (no supplementary groups) may enter `dir` and create files
+/// in it: `test -x && test -w` (access(2)) after dropping to those ids. Needs root.
+fn may_write_into(uid: u32, gid: u32, dir: &Path) -> bool {
+    use std::os::unix::process::CommandExt;
+    let mut cmd = Command::new("/bin/sh");
+    cmd.args(["-c", "test -x \"$1\" && test -w \"$1\"", "sh"]).arg(dir);
+    // SAFETY: only async-signal-safe calls between fork and exec.
+    unsafe {
+        cmd.pre_exec(move || {
+            if libc::setgroups(0, std::ptr::null()) != 0 || libc::setgid(gid) != 0 || libc::setuid(uid) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    cmd.status().unwrap_or_else(|e| panic!("test -w {} as uid {uid}: {e}", dir.display())).success()
+}
+
 #[test]
 fn users_folders_and_iceoryx2_root_are_what_the_real_tools_make_of_them() {
     let (root, name) = installed("files", &[]);
@@ -126,23 +154,33 @@ fn users_folders_and_iceoryx2_root_are_what_the_real_tools_make_of_them() {
     assert!(out.status.success(), "systemd-sysusers failed");
     let passwd = std::fs::read_to_string(r.join("etc/passwd")).expect("passwd");
     let group = std::fs::read_to_string(r.join("etc/group")).expect("group");
-    let id = |db: &str, n: &str| -> u32 {
+    let field = |db: &str, n: &str, i: usize| -> u32 {
         let line = db.lines().find(|l| l.split(':').next() == Some(n)).unwrap_or_else(|| panic!("no {n}:\n{db}"));
-        line.split(':').nth(2).and_then(|v| v.parse().ok()).expect("numeric id")
+        line.split(':').nth(i).and_then(|v| v.parse().ok()).expect("numeric id")
     };
-    let (r2g_uid, r2g_gid) = (id(&passwd, "r2g"), id(&group, "r2g"));
-    let agent_uid = id(&passwd, "r2g-agent");
+    let (r2g_uid, r2g_gid) = (field(&passwd, "r2g", 2), field(&group, "r2g", 2));
+    let (agent_uid, agent_gid) = (field(&passwd, "r2g-agent", 2), field(&group, "r2g-agent", 2));
     assert_ne!(r2g_uid, agent_uid, "control and agent must be different users");
-    let _ = id(&group, "r2g-operator");
-    let r2g_members = group.lines().find(|l| l.starts_with("r2g:")).expect("group r2g");
-    assert!(r2g_members.ends_with(":r2g-agent"), "r2g-agent must be in group r2g: {r2g_members}");
+    assert_ne!(r2g_gid, agent_gid, "the agent must have a group of its own");
+    assert_eq!(field(&passwd, "r2g", 3), r2g_gid, "r2g's primary group");
+    assert_eq!(field(&passwd, "r2g-agent", 3), agent_gid, "r2g-agent's primary group must be r2g-agent");
+    let _ = field(&group, "r2g-operator", 2);
+    // Group r2g (the control instance's folders) lists no members (user r2g has it as its primary
+    // group), and r2g-agent is listed in no group at all.
+    let r2g_line = group.lines().find(|l| l.starts_with("r2g:")).expect("group r2g");
+    assert!(r2g_line.ends_with(':'), "group r2g must have no members: {r2g_line}");
+    for line in group.lines() {
+        let members = line.split(':').nth(3).unwrap_or("");
+        assert!(!members.split(',').any(|m| m == "r2g-agent"), "r2g-agent must be in no group: {line}");
+    }
 
-    // The iceoryx2 configuration moves the root path under the instance's run folder.
-    let cfg_path = r.join(format!("etc/r2g/{name}/iceoryx2.toml"));
-    use iceoryx2::prelude::SemanticString;
-    let file = iceoryx2::prelude::FilePath::new(cfg_path.to_str().expect("utf-8").as_bytes()).expect("file path");
-    let cfg = iceoryx2::config::Config::from_file(&file).expect("iceoryx2 loads the shipped config");
-    assert_eq!(cfg.global.root_path().to_string(), format!("/run/r2g/{name}/iceoryx2/"));
+    // The iceoryx2 configurations move the root paths under the instance's run folder: the
+    // control instance's, and the agent unit's own.
+    assert_eq!(iceoryx2_root(&r.join(format!("etc/r2g/{name}/iceoryx2.toml"))), format!("/run/r2g/{name}/iceoryx2/"));
+    assert_eq!(
+        iceoryx2_root(&r.join(format!("etc/r2g/{name}/agent-iceoryx2.toml"))),
+        format!("/run/r2g/{name}/agent/iceoryx2/")
+    );
 
     // systemd-tmpfiles creates the instance's folders with the users above (chown needs root).
     // SAFETY: geteuid cannot fail.
@@ -155,13 +193,134 @@ fn users_folders_and_iceoryx2_root_are_what_the_real_tools_make_of_them() {
         .arg("--create")
         .arg(r.join(format!("etc/tmpfiles.d/r2g-{name}.conf"))));
     assert!(out.status.success(), "systemd-tmpfiles failed");
+    // tmpfiles refuses to work below a folder of one unprivileged user that holds another
+    // user's ("unsafe path transition"): nothing may be reported, and every folder must be there.
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.trim().is_empty(), "systemd-tmpfiles warned:\n{stderr}");
     use std::os::unix::fs::MetadataExt;
-    for (sub, mode) in [("", 0o711), ("/iceoryx2", 0o2770), ("/shm", 0o2770)] {
+    let folders = [
+        ("", 0o771, 0, r2g_gid),
+        ("/iceoryx2", 0o2770, r2g_uid, r2g_gid),
+        ("/shm", 0o2770, r2g_uid, r2g_gid),
+        ("/agent", 0o750, agent_uid, agent_gid),
+        ("/agent/iceoryx2", 0o2770, agent_uid, agent_gid),
+        ("/agent/shm", 0o2770, agent_uid, agent_gid),
+        ("/agent/run", 0o750, agent_uid, agent_gid),
+    ];
+    for (sub, mode, uid, gid) in folders {
         let p = r.join(format!("run/r2g/{name}{sub}"));
         let m = std::fs::metadata(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
         assert_eq!(m.mode() & 0o7777, mode, "{} mode {:o}", p.display(), m.mode() & 0o7777);
-        assert_eq!((m.uid(), m.gid()), (r2g_uid, r2g_gid), "{} owner", p.display());
+        assert_eq!((m.uid(), m.gid()), (uid, gid), "{} owner", p.display());
     }
+
+    // What each user may do there, asked of the kernel as that user (its groups as above): only
+    // r2g writes into the control instance's folders, only r2g-agent into the agent's.
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(r, std::fs::Permissions::from_mode(0o755)).expect("chmod the temp root");
+    let run_dir = r.join(format!("run/r2g/{name}"));
+    for (sub, control, agent) in [
+        ("", true, false),
+        ("iceoryx2", true, false),
+        ("shm", true, false),
+        ("agent/iceoryx2", false, true),
+        ("agent/shm", false, true),
+        ("agent/run", false, true),
+    ] {
+        let p = run_dir.join(sub);
+        assert_eq!(may_write_into(r2g_uid, r2g_gid, &p), control, "user r2g writing into {}", p.display());
+        assert_eq!(may_write_into(agent_uid, agent_gid, &p), agent, "user r2g-agent writing into {}", p.display());
+    }
+}
+
+/// The directives of an installed unit: its template and its drop-ins in order, `%i` replaced,
+/// comments left out, as `(key, value)`.
+fn directives(dir: &Path, template: &str, name: &str) -> Vec<(String, String)> {
+    let mut files = vec![dir.join(template)];
+    let drop_ins = dir.join(format!("{}{name}.service.d", template.trim_end_matches(".service")));
+    let mut extra: Vec<PathBuf> =
+        std::fs::read_dir(&drop_ins).into_iter().flatten().flatten().map(|e| e.path()).collect();
+    extra.sort();
+    files.extend(extra);
+    let mut out = Vec::new();
+    for f in files {
+        let text = std::fs::read_to_string(&f).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+        for line in text.lines().map(str::trim).filter(|l| !l.starts_with('#') && !l.starts_with(';')) {
+            if let Some((k, v)) = line.split_once('=') {
+                out.push((k.trim().to_string(), v.trim().replace("%i", name)));
+            }
+        }
+    }
+    out
+}
+
+fn values<'a>(d: &'a [(String, String)], key: &str) -> Vec<&'a str> {
+    d.iter().filter(|(k, _)| k == key).flat_map(|(_, v)| v.split_whitespace()).collect()
+}
+
+#[test]
+fn the_agent_unit_has_folders_of_its_own() {
+    let (root, name) = installed("agentdirs", &[]);
+    let dir = root.0.join("etc/systemd/system");
+    let control_shm = format!("/run/r2g/{name}/shm");
+    let control_ipc = format!("/run/r2g/{name}/iceoryx2");
+    let control_cfg = format!("/etc/r2g/{name}/iceoryx2.toml");
+
+    // The control process and the robot side share the instance's folders, as user r2g.
+    for unit in ["r2g-control@.service", "r2g-sim@.service"] {
+        let d = directives(&dir, unit, &name);
+        assert_eq!(values(&d, "User"), ["r2g"], "{unit}");
+        assert_eq!(values(&d, "Group"), ["r2g"], "{unit}");
+        assert_eq!(values(&d, "BindPaths"), [format!("{control_shm}:/dev/shm")], "{unit}");
+        assert!(values(&d, "Environment").contains(&format!("R2G_IPC_CONFIG={control_cfg}").as_str()), "{unit}");
+    }
+
+    // The agent unit: its own user and group, /dev/shm, iceoryx2 root and run folder.
+    let d = directives(&dir, "r2g-agent@.service", &name);
+    assert_eq!(values(&d, "User"), ["r2g-agent"]);
+    assert_eq!(values(&d, "Group"), ["r2g-agent"]);
+    assert_eq!(values(&d, "BindPaths"), [format!("/run/r2g/{name}/agent/shm:/dev/shm")]);
+    let env = values(&d, "Environment");
+    let agent_cfg = format!("/etc/r2g/{name}/agent-iceoryx2.toml");
+    for want in [format!("R2G_IPC_CONFIG={agent_cfg}"), format!("R2G_RUN_DIR=/run/r2g/{name}/agent/run")] {
+        assert!(env.contains(&want.as_str()), "the agent unit lacks {want}: {env:?}");
+    }
+    assert_eq!(env.iter().filter(|v| v.starts_with("R2G_IPC_CONFIG=")).count(), 1, "{env:?}");
+    assert_eq!(env.iter().filter(|v| v.starts_with("R2G_RUN_DIR=")).count(), 1, "{env:?}");
+    let writable = values(&d, "ReadWritePaths");
+    assert!(!writable.is_empty(), "the agent unit has no ReadWritePaths=");
+    for p in &writable {
+        let p = p.trim_start_matches(['-', '+']);
+        assert!(p == format!("/run/r2g/{name}/agent") || p.starts_with(&format!("/run/r2g/{name}/agent/")), "{p}");
+    }
+    // The control instance's folders are hidden from it, and named nowhere else in the unit.
+    let hidden: Vec<&str> = values(&d, "InaccessiblePaths").iter().map(|p| p.trim_start_matches('-')).collect();
+    for p in [&control_shm, &control_ipc] {
+        assert!(hidden.contains(&p.as_str()), "the agent unit does not hide {p}: {hidden:?}");
+    }
+    for (k, v) in d.iter().filter(|(k, _)| k != "InaccessiblePaths") {
+        for p in [&control_shm, &control_ipc, &control_cfg] {
+            let named = v.split([' ', '=', ':', '"', '\'']).any(|t| t == p.as_str() || t == format!("{p}/"));
+            assert!(!named, "the agent unit's {k}={v} names the control instance's {p}");
+        }
+    }
+    // Its configuration file is installed and points at its own iceoryx2 root.
+    assert_eq!(
+        iceoryx2_root(&root.0.join(agent_cfg.trim_start_matches('/'))),
+        format!("/run/r2g/{name}/agent/iceoryx2/")
+    );
+
+    // A machine installed before has r2g-agent in group r2g; sysusers never removes that, so
+    // install says how to.
+    let again = Temp::new("oldgroup");
+    std::fs::create_dir_all(again.0.join("etc")).expect("etc");
+    std::fs::write(again.0.join("etc/group"), "r2g:x:990:r2g-agent\nr2g-agent:x:989:\n").expect("group");
+    let out = install(&again.0, &[GYM, "--instance", &name]);
+    assert!(out.status.success(), "install failed");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("gpasswd -d r2g-agent r2g"), "no note on the leftover membership:\n{stderr}");
+    let clean = install(&root.0, &[GYM, "--instance", &name]);
+    assert!(!String::from_utf8_lossy(&clean.stderr).contains("gpasswd"), "a note without a leftover membership");
 }
 
 #[test]
