@@ -16,6 +16,9 @@ use serde_json::{json, Value};
 use crate::llm::{Client, EndpointConfig, Message, Part, Role};
 use crate::worker::{Budget, ExecResult, Limits, Worker, WorkerConfig};
 
+/// How an episode's `stop_reason` begins when the LLM endpoint could not answer.
+pub const ENDPOINT_FAILED: &str = "the LLM endpoint failed";
+
 pub struct EpisodeConfig {
     pub gym: String,
     pub scene: PathBuf,
@@ -327,7 +330,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
             Ok(c) => c,
             Err(e) => {
                 rec.round(&json!({"round": round, "error": e.to_string()}))?;
-                break format!("the LLM endpoint failed: {e}");
+                break format!("{ENDPOINT_FAILED}: {e}");
             }
         };
         out.responses += 1;

@@ -192,10 +192,15 @@ pub fn batch(
         "tokens_in": sum("tokens_in"), "tokens_cached": sum("tokens_cached"), "tokens_out": sum("tokens_out"),
         "wall_s": sum("wall_s"), "model_s": sum("model_s"), "exec_s": sum("exec_s"), "overhead_s": sum("overhead_s"),
         "run_dir": dir.display().to_string(),
+        // Episodes that could not run at all: an error, or no answer from the endpoint ever.
+        "errors": rows.iter().filter(|r| r.get("error").is_some() || (r["responses"] == 0
+            && r["stop_reason"].as_str().is_some_and(|s| s.starts_with(crate::episode::ENDPOINT_FAILED)))).count(),
         "per_episode": rows,
     });
     std::fs::create_dir_all(&dir)?;
-    std::fs::write(dir.join("batch.json"), serde_json::to_vec_pretty(&summary)?)?;
+    let tmp = dir.join("batch.json.tmp");
+    std::fs::write(&tmp, serde_json::to_vec_pretty(&summary)?)?;
+    std::fs::rename(&tmp, dir.join("batch.json"))?;
     Ok(summary)
 }
 

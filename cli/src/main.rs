@@ -97,7 +97,9 @@ enum Cmd {
         #[command(flatten)]
         opts: EpisodeArgs,
     },
-    /// Several episodes and their metrics (success rate, responses, tokens, time split).
+    /// Several episodes and their metrics (success rate, responses, tokens, time split). Exits 1
+    /// when no episode could run at all (every one ended in an error, e.g. an unreachable
+    /// endpoint), 0 otherwise, however many tasks failed.
     Batch {
         #[arg(long, default_value_t = 3)]
         episodes: u32,
@@ -386,7 +388,10 @@ fn main() {
         })
         .map(|v| {
             println!("{v}");
-            0
+            // Failed tasks are results; a batch none of whose episodes could run at all (the
+            // endpoint or the gym failing every time) is a failure of the batch.
+            let ran_none = v["episodes"].as_u64().is_some_and(|n| n > 0) && v["errors"] == v["episodes"];
+            i32::from(ran_none)
         }),
         Cmd::View { run_dir } => agent_host::viewer::write(&run_dir).map(|p| {
             println!("{}", p.display());

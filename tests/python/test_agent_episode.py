@@ -156,6 +156,24 @@ def test_a_batch_reports_success_rate_tokens_and_the_time_split(tmp_path: Path) 
     assert all((tmp_path / "b" / f"episode-{i:03}" / "index.html").is_file() for i in range(2))
 
 
+def test_a_batch_that_cannot_run_any_episode_fails(tmp_path: Path) -> None:
+    """An unreachable endpoint (a closed loopback port): every episode errors, the batch exits 1."""
+    import socket
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again when the block ends: nothing listens there
+    endpoint = tmp_path / "down.toml"
+    endpoint.write_text(f'provider = "openai"\nbase_url = "http://127.0.0.1:{port}"\nmodel = "m"\n'
+                        'temperature = 0.0\nmax_tokens = 64\ntimeout_s = 5\nretries = 0\n')
+    out = subprocess.run(
+        [str(R2G), "batch", "pick_block_plate", "--episodes", "1", "--llm", str(endpoint), "--out", str(tmp_path / "b")],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert out.returncode == 1, out
+    b = json.loads(out.stdout.strip().splitlines()[-1])
+    assert b["episodes"] == 1 and b["errors"] == 1 and b["success_rate"] == 0.0, b
+
+
 def test_memory_collection_follows_no_links_planted_by_a_program(tmp_path: Path) -> None:
     memory = tmp_path / "memory"
     stage = (
