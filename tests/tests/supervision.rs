@@ -387,8 +387,16 @@ fn a_killed_robot_side_holds_the_arm_refuses_chunks_and_motion_resumes_from_meas
     let mut procs = Procs::default();
     let ctl_bin = bin_dir().join("r2g-control");
     let sim1 = procs.add(sim(&inst));
+    /// Removes the folder when the test ends, pass or fail.
+    struct TempDir(PathBuf);
+    impl Drop for TempDir {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
     let stats_dir = std::env::temp_dir().join(format!("r2g-rl-{}", std::process::id()));
     std::fs::create_dir_all(&stats_dir).expect("temp dir");
+    let _cleanup = TempDir(stats_dir.clone());
     let stats_file = stats_dir.join("stats.json");
     let stats_arg = stats_file.display().to_string();
     let ctl = procs.add(control(&ctl_bin, &inst, None, &["--state-timeout-ms", "100", "--stats-out", &stats_arg]));
@@ -524,7 +532,6 @@ fn a_killed_robot_side_holds_the_arm_refuses_chunks_and_motion_resumes_from_meas
     assert_eq!(procs.wait(ctl, Duration::from_secs(10)), Some(0));
     let stats: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&stats_file).expect("stats-out")).expect("stats JSON");
-    let _ = std::fs::remove_dir_all(&stats_dir);
     eprintln!(
         "r2g-control: {} ticks, {} limit violations, {} robot losses, {} tick allocations, {} tick frees",
         stats["ticks"],
