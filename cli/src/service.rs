@@ -466,13 +466,12 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
     ];
     for (file, text) in templates {
         let rel = PathBuf::from("etc/systemd/system").join(file);
-        let text = text.replace("@BIN_DIR@", &bin);
         if let Ok(old) = std::fs::read_to_string(args.root.join(&rel)) {
             if old != text {
                 notes.push(format!("replaced {} (it differed; every instance uses it)", rel.display()));
             }
         }
-        files.push((rel, text));
+        files.push((rel, text.to_string()));
     }
 
     // Per-instance drop-ins.
@@ -480,7 +479,9 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
         "# Written by `r2g service install` for instance {name}; the values are in {etc}/instance.toml.\n\
          # Install again (with --config {etc}/instance.toml) rather than editing this file.\n[Service]\n"
     );
-    let checkout = format!("Environment=R2G_GYMS={gyms} R2G_ROBOTS={robots} R2G_SKILL={skill}\n");
+    let checkout = format!(
+        "Environment=R2G_GYMS={gyms} R2G_ROBOTS={robots} R2G_SKILL={skill}\nEnvironment=\"R2G_BIN_DIR={bin}\"\n"
+    );
     let others = show_cpus(&s.housekeeping_cpus).replace(',', " ");
     // The control process may use the housekeeping CPUs and the loop's CPU; the loop thread pins
     // itself to the latter, so its side threads (notifier, operator socket) stay off it.
