@@ -230,29 +230,25 @@ impl Ports {
         }
     }
 
-    /// Takes note of agents that connected or left since the last call (iceoryx2 maps or unmaps
-    /// their segments here), so that the tick's own receive and send find nothing to set up.
-    fn update_agent_connections(&self, stats: &mut TickStats) {
+    /// Takes note of peers that connected or left since the last call: agents come and go, and
+    /// the robot side can die and come back (iceoryx2 maps or unmaps their segments here), so
+    /// that the tick's own receive and send find nothing to set up.
+    fn update_connections(&self, stats: &mut TickStats) {
         use iceoryx2::port::update_connections::UpdateConnections;
-        let results = [
+        let agents = [
             self.req_sub.update_connections(),
             self.reply_pub.update_connections(),
             self.robot_pub.update_connections(),
             self.agent_wake.update_connections(),
         ];
-        stats.agent_port_errors += results.iter().filter(|r| r.is_err()).count() as u64;
-    }
-
-    /// The same for the robot side, which can die and come back (a restarted sim-host).
-    fn update_robot_connections(&self, stats: &mut TickStats) {
-        use iceoryx2::port::update_connections::UpdateConnections;
-        let results = [
+        let robot = [
             self.state_sub.update_connections(),
             self.cmd_pub.update_connections(),
             self.reset_pub.update_connections(),
             self.sim_wake.update_connections(),
         ];
-        stats.robot_port_errors += results.iter().filter(|r| r.is_err()).count() as u64;
+        stats.agent_port_errors += agents.iter().filter(|r| r.is_err()).count() as u64;
+        stats.robot_port_errors += robot.iter().filter(|r| r.is_err()).count() as u64;
     }
 
     fn wake_agents(&self, stats: &mut TickStats) {
@@ -395,8 +391,7 @@ fn wall_loop(
     loop {
         if period > 2 * CONNECT_LEAD_NS {
             rt::sleep_until(deadline - CONNECT_LEAD_NS, 0);
-            ports.update_agent_connections(&mut stats);
-            ports.update_robot_connections(&mut stats);
+            ports.update_connections(&mut stats);
         }
         rt::sleep_until(deadline, cfg.spin_ns);
         let woke = rt::now_ns();
