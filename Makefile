@@ -35,7 +35,7 @@ $(STAMPS)/deps: scripts/install-deps.sh
 	@mkdir -p $(STAMPS) && touch $@
 
 venv: $(STAMPS)/venv
-$(STAMPS)/venv: requirements.txt scripts/setup-venv.sh $(STAMPS)/deps
+$(STAMPS)/venv: requirements.txt fci/franka-sim/requirements.txt scripts/setup-venv.sh $(STAMPS)/deps
 	scripts/setup-venv.sh
 	@mkdir -p $(STAMPS) && touch $@
 

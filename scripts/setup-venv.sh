@@ -14,3 +14,7 @@ ln -sfn "$lib" ".venv/mujoco-lib/$(basename "$lib")"
 # robo does; the sandbox finds them on its own path.
 site=$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
 echo "$PWD/agent-host/py/lib" > "$site/r2g_agent_lib.pth"
+# franka-sim, the independent FCI peer r2g-fci is tested against, pins a MuJoCo and numpy older
+# than ours: it gets its own environment (fci/franka-sim/serve.py runs in it).
+[ -x .venv-franka-sim/bin/python ] || python3 -m venv .venv-franka-sim
+.venv-franka-sim/bin/python -m pip install -q --disable-pip-version-check -r fci/franka-sim/requirements.txt

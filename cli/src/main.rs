@@ -62,6 +62,13 @@ enum Cmd {
         /// running the instance.
         #[arg(long)]
         operator_group: Option<String>,
+        /// Drive a real Franka arm at this FCI address (host or host:port) instead of the
+        /// simulator: r2g-fci becomes the robot side (wall mode, franka profile; no cameras).
+        #[arg(long)]
+        fci: Option<String>,
+        /// Also drive the Franka Hand of that arm (with --fci).
+        #[arg(long, requires = "fci")]
+        fci_gripper: bool,
     },
     /// Run one program in the sandbox against a live gym (`r2g up ... --instance NAME`) and
     /// print a JSON result: stdout, stderr, exit, violation, control steps, what was enforced.
@@ -300,6 +307,17 @@ enum BenchCmd {
         #[arg(long)]
         only: Option<String>,
     },
+    /// Tick-to-command latency of the real loop while a client posts the heaviest accepted and
+    /// rejected ee_pose chunks back to back, beside the bare loop in the same run; with chunk
+    /// checks on the planner thread, then on the tick thread (the old way).
+    Accept {
+        /// Seconds of chunks per run.
+        #[arg(long, default_value_t = 20.0)]
+        seconds: f64,
+        /// Only one run: `planner` or `tick`.
+        #[arg(long)]
+        only: Option<String>,
+    },
     /// Cost of one controller tick (interpolation, limiter, checks) following valid chunks,
     /// with allocations inside ticks counted, beside FK + Jacobian alone.
     TickCompute {
@@ -366,13 +384,20 @@ enum BenchCmd {
 fn main() {
     let cli = Cli::parse();
     let r = match cli.command {
-        Cmd::Up { gym, mode, instance, render_hz, trace_dir, robot_config, operator_group } => {
+        Cmd::Up { gym, mode, instance, render_hz, trace_dir, robot_config, operator_group, fci, fci_gripper } => {
             // Only `up` waits for the stop signals to shut its instance down in order; every other
             // command ends at once on them, and its instances' processes follow (die_with_parent).
             process::install_stop_signals();
             let rc = robot_config.unwrap_or_else(launch::default_robot_config);
             let control_args = operator_group.map(|g| vec!["--operator-group".into(), g]).unwrap_or_default();
-            up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc, control_args)
+            let side = match fci {
+                Some(address) => launch::RobotSide::Fci {
+                    address,
+                    extra: if fci_gripper { vec!["--gripper".into()] } else { vec![] },
+                },
+                None => launch::RobotSide::Sim,
+            };
+            up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc, control_args, &side)
         }
         Cmd::Clear { instance } => runtime::operator::clear_fault(&instance).map(|(_cleared, reason)| {
             println!("{reason}");
@@ -423,6 +448,9 @@ fn main() {
             bench::all::run(jitter_seconds, &out, quick).map(|_| 0)
         }
         Cmd::Bench { which: BenchCmd::TickCompute { ticks } } => bench::control::tick_compute(ticks).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::Accept { seconds, only } } => {
+            bench::accept::run(seconds, only.as_deref()).map(|_| 0)
+        }
         Cmd::Bench { which: BenchCmd::LimiterFuzz { chunks, seed } } => {
             bench::control::limiter_fuzz(chunks, seed).map(|v| if v["violations"] == 0 { 0 } else { 1 })
         }
@@ -482,6 +510,7 @@ fn author_demo(gym: &str) -> anyhow::Result<i32> {
     Ok(0)
 }
 
+#[allow(clippy::too_many_arguments)]
 fn up(
     gym: &str,
     mode: ModeArg,
@@ -490,6 +519,7 @@ fn up(
     trace_dir: Option<&std::path::Path>,
     robot_config: std::path::PathBuf,
     control_args: Vec<String>,
+    side: &launch::RobotSide,
 ) -> anyhow::Result<i32> {
     let opts = UpOptions {
         scene: launch::resolve_scene(gym)?,
@@ -504,7 +534,7 @@ fn up(
         robot_config: Some(robot_config),
         ready_timeout: Duration::from_secs(60),
     };
-    let mut inst = Instance::up(&opts)?;
+    let mut inst = Instance::up_with(&opts, side)?;
     println!("READY {instance}");
     std::io::stdout().flush()?;
     match inst.supervise()? {

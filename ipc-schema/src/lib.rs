@@ -10,7 +10,7 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 /// Bumped whenever any payload below changes layout or meaning. Every service carries it as
 /// the attribute `r2g.schema`; a process of another build is refused when it connects.
-pub const SCHEMA_VERSION: u32 = 4;
+pub const SCHEMA_VERSION: u32 = 5;
 /// Attribute key that carries [`SCHEMA_VERSION`] on every service.
 pub const SCHEMA_ATTRIBUTE: &str = "r2g.schema";
 
@@ -50,7 +50,7 @@ impl Default for Pose {
 /// Holds no object poses: privileged simulator state never crosses IPC.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
-#[type_name("r2g.SimState.v3")]
+#[type_name("r2g.SimState.v4")]
 pub struct SimState {
     /// Increments with every published state.
     pub seq: u64,
@@ -72,12 +72,56 @@ pub struct SimState {
     /// Names this run of the robot side (nonzero, new at every start): the runtime tells a
     /// restarted robot side from the one it lost, and commands carry it back.
     pub session: u64,
+    /// CLOCK_MONOTONIC when the robot side published this state, ns (0: not stamped).
+    pub published_ns: u64,
+    /// Nonzero: the robot side paces the tick. It publishes a state each cycle of the robot
+    /// (a real arm's 1 kHz packets) and uses only the command answering that state; the runtime
+    /// ticks on each state instead of its own clock (see runtime/README.md, "Who paces the tick").
+    pub paced: u32,
+    /// What the robot itself reports: [`ROBOT_OK`], [`ROBOT_RECOVERING`] or
+    /// [`ROBOT_NEEDS_OPERATOR`]. A simulator always reports [`ROBOT_OK`].
+    pub robot_error: u32,
+    /// Reflexes the robot stopped a motion with and recovered from, since this robot side started.
+    pub reflexes: u64,
+    /// The robot's own words for its last error (for example the Franka error names), NUL-padded.
+    /// (Three rows of 32 so that the payload keeps a derived `Default`.)
+    pub error_text: [[u8; 32]; ERROR_TEXT_LEN / 32],
+}
+
+/// [`SimState::robot_error`]: the robot moves as commanded.
+pub const ROBOT_OK: u32 = 0;
+/// [`SimState::robot_error`]: one of the robot's own reflexes stopped the motion and the robot
+/// side runs its bounded automatic recovery; it publishes no state until that ends.
+pub const ROBOT_RECOVERING: u32 = 1;
+/// [`SimState::robot_error`]: recovery failed (or reflexes came too often): the robot side waits
+/// for an operator ([`JointCommand::clear_seq`]) before it tries again.
+pub const ROBOT_NEEDS_OPERATOR: u32 = 2;
+/// Bytes of [`SimState::error_text`].
+pub const ERROR_TEXT_LEN: usize = 96;
+
+impl SimState {
+    /// [`SimState::error_text`] as text (up to the first NUL).
+    pub fn error_str(&self) -> &str {
+        let bytes = self.error_text.as_flattened();
+        let n = bytes.iter().position(|&b| b == 0).unwrap_or(ERROR_TEXT_LEN);
+        core::str::from_utf8(&bytes[..n]).unwrap_or("(not UTF-8)")
+    }
+
+    /// Sets [`SimState::error_text`], cut at a character boundary to fit.
+    pub fn set_error(&mut self, text: &str) {
+        let mut n = text.len().min(ERROR_TEXT_LEN);
+        while !text.is_char_boundary(n) {
+            n -= 1;
+        }
+        self.error_text = Default::default();
+        self.error_text.as_flattened_mut()[..n].copy_from_slice(&text.as_bytes()[..n]);
+    }
 }
 
 /// runtime → sim-host, once per tick: the limited joint command.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
-#[type_name("r2g.JointCommand.v2")]
+#[type_name("r2g.JointCommand.v3")]
 pub struct JointCommand {
     pub seq: u64,
     /// The state this command was computed from.
@@ -90,6 +134,9 @@ pub struct JointCommand {
     /// ignores commands of another session: a restarted one never follows a target meant for
     /// its predecessor.
     pub session: u64,
+    /// Operator fault resets so far. A robot side waiting for an operator
+    /// ([`ROBOT_NEEDS_OPERATOR`]) tries its recovery again when this grows.
+    pub clear_seq: u64,
 }
 
 /// runtime → sim-host: restore the scene's initial state.
@@ -747,13 +794,14 @@ mod tests {
         // A layout change must bump SCHEMA_VERSION; this test makes the change visible.
         // Schema 2 added the external force (SimState, RobotState), the fault flag, the reply's
         // latency stamps and the profile limits; schema 3 the continuous TCP axis-angle vector
-        // (RobotState); schema 4 the robot side's session (SimState, JointCommand).
-        assert_eq!(core::mem::size_of::<SimState>(), 248);
-        assert_eq!(core::mem::size_of::<JointCommand>(), 144);
+        // (RobotState); schema 4 the robot side's session (SimState, JointCommand); schema 5
+        // pacing, the robot's own errors (SimState) and operator resets (JointCommand).
+        assert_eq!(core::mem::size_of::<SimState>(), 248 + 8 + 4 + 4 + 8 + ERROR_TEXT_LEN);
+        assert_eq!(core::mem::size_of::<JointCommand>(), 152);
         assert_eq!(core::mem::size_of::<Request>(), 40 + 8 * WAYPOINT_LEN * MAX_CHUNK);
         assert_eq!(core::mem::size_of::<RobotState>(), 280);
         assert_eq!(core::mem::size_of::<Reply>(), 48 + REASON_LEN);
-        assert_eq!(SCHEMA_VERSION, 4);
+        assert_eq!(SCHEMA_VERSION, 5);
     }
 }
 

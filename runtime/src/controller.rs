@@ -10,6 +10,7 @@ use controllers::Reference;
 use controllers::{ChunkPlan, JointTracker, LimiterConfig, Rejection, RobotModel};
 use ipc_schema::{
     ControlType, JointCommand, Profile, Reply, Request, RequestKind, RobotState, SimState, Status, N_JOINTS,
+    WAYPOINT_LEN,
 };
 
 use crate::robot_config::Reflexes;
@@ -34,6 +35,9 @@ const FORCE_FILTER_S: f64 = 0.02;
 /// Contact reflexes need the force to have grown by this much since the chunk began, so an arm
 /// already pressing on something can still back away from it, N.
 const REFLEX_GROWTH_N: f64 = 5.0;
+/// A chunk checked off the tick (see [`Controller::commit`]) is refused when the command has
+/// moved further than this from where its checks started, rad (any joint).
+pub const STALE_START_RAD: f64 = 0.05;
 
 #[derive(Debug, Clone, Copy)]
 enum Phase {
@@ -68,7 +72,10 @@ pub struct Controller {
     pub cfg: LimiterConfig,
     dt_s: f64,
     tracker: Option<JointTracker>,
-    plan: ChunkPlan,
+    /// The running chunk's plan. Boxed once: an accepted plan is swapped in, never copied.
+    plan: Box<ChunkPlan>,
+    /// Where [`Self::plan_now`] puts a plan before [`Self::commit`] swaps it in.
+    spare: Box<ChunkPlan>,
     reference: Reference,
     active: Option<Active>,
     locked: Option<ControlType>,
@@ -113,12 +120,78 @@ pub struct Controller {
     lost_after_ms: f64,
     /// The command restarted at the measured state since the last [`Self::take_restarted`].
     restarted: bool,
+    /// Operator fault resets so far (carried in every command, see [`JointCommand::clear_seq`]).
+    clear_seq: u64,
+    /// The robot side's own error report last seen ([`SimState::robot_error`]).
+    robot_error: u32,
+    /// Its reflex count last seen ([`SimState::reflexes`]).
+    robot_reflexes: u64,
+    /// Clock time of the last reflex the robot reported, s.
+    last_reflex_s: Option<f64>,
+    /// A second reflex within this many seconds of the previous one needs an operator.
+    reflex_window_s: f64,
 }
 
 /// A request the controller wants passed to the simulator.
 pub enum Forward {
     None,
     Reset { sim_reset_id: u64 },
+}
+
+/// A chunk that passed [`Controller::admit`]: what its own checks need besides its waypoints.
+#[derive(Debug, Clone, Copy)]
+pub struct Job {
+    pub id: u64,
+    pub client: u64,
+    pub ct: ControlType,
+    /// Waypoints used (at most `MAX_CHUNK`).
+    pub len: usize,
+    pub freq_hz: f64,
+    /// The command when the request arrived: where the chunk's checks start.
+    pub start_q: [f64; N_JOINTS],
+}
+
+/// What [`Controller::admit`] decided.
+#[allow(clippy::large_enum_variant)] // returned by value on the tick: a box would allocate
+pub enum Admission {
+    /// Decided already: the reply to send now (none for a reset in progress) and what to
+    /// forward to the simulator.
+    Answer(Option<Reply>, Forward),
+    /// A chunk whose own checks are left ([`Acceptance::plan`]); the outcome goes to
+    /// [`Controller::commit`].
+    Plan(Job),
+}
+
+/// What a chunk's own checks need (shape, limits, step caps, IK and collisions along the
+/// path), copied from a controller for a thread of their own (see `planner`).
+#[derive(Clone)]
+pub struct Acceptance {
+    robot: RobotModel,
+    cfg: LimiterConfig,
+    ik: IkSolver,
+    safety: Option<SafetyChecks>,
+}
+
+impl Acceptance {
+    /// The plan of `job`, whose waypoints are `actions[..job.len]`, or why it is refused.
+    pub fn plan(&self, job: &Job, actions: &[[f64; WAYPOINT_LEN]]) -> Result<ChunkPlan, Rejection> {
+        plan_chunk(job, actions, &self.robot, &self.cfg, &self.ik, self.safety.as_ref())
+    }
+}
+
+fn plan_chunk(
+    job: &Job,
+    actions: &[[f64; WAYPOINT_LEN]],
+    robot: &RobotModel,
+    cfg: &LimiterConfig,
+    ik: &IkSolver,
+    safety: Option<&SafetyChecks>,
+) -> Result<ChunkPlan, Rejection> {
+    let actions = &actions[..job.len.min(actions.len())];
+    match job.ct {
+        ControlType::Joint => ChunkPlan::joint(actions, job.freq_hz, job.start_q, robot, cfg, safety),
+        ControlType::EePose => ChunkPlan::ee_pose(actions, job.freq_hz, job.start_q, robot, cfg, ik, safety),
+    }
 }
 
 impl Controller {
@@ -131,7 +204,8 @@ impl Controller {
         };
         #[allow(clippy::expect_used)] // the settings above are valid by construction
         let ik = IkSolver::new(&robot, ik_cfg).expect("valid IK settings");
-        let plan = ChunkPlan::hold([0.0; N_JOINTS], -1.0);
+        let plan = Box::new(ChunkPlan::hold([0.0; N_JOINTS], -1.0));
+        let spare = Box::new(ChunkPlan::hold([0.0; N_JOINTS], -1.0));
         let reference = plan.sample(0.0);
         Self {
             robot,
@@ -139,6 +213,7 @@ impl Controller {
             dt_s,
             tracker: None,
             plan,
+            spare,
             reference,
             active: None,
             locked: None,
@@ -166,6 +241,11 @@ impl Controller {
             robot_lost_since_s: None,
             lost_after_ms: 0.0,
             restarted: false,
+            clear_seq: 0,
+            robot_error: ipc_schema::ROBOT_OK,
+            robot_reflexes: 0,
+            last_reflex_s: None,
+            reflex_window_s: 10.0,
         }
     }
 
@@ -197,7 +277,106 @@ impl Controller {
     /// The operator's fault reset (only ever called for a request from the operator socket).
     /// Returns whether there was a fault to clear.
     pub fn clear_fault(&mut self) -> bool {
-        self.fault.take().is_some()
+        let had = self.fault.take().is_some();
+        if had {
+            // A robot side waiting for an operator tries its recovery again.
+            self.clear_seq += 1;
+            self.last_reflex_s = None;
+        }
+        had
+    }
+
+    /// A second reflex of the robot within `window_s` of the previous one needs an operator.
+    pub fn with_reflex_window(mut self, window_s: f64) -> Self {
+        self.reflex_window_s = window_s;
+        self
+    }
+
+    /// Whether the robot itself is stopped by one of its reflexes (recovering, or waiting for
+    /// an operator): the runtime holds and refuses chunks until the robot side reports it clear.
+    pub fn is_robot_stopped(&self) -> bool {
+        self.robot_error != ipc_schema::ROBOT_OK
+    }
+
+    /// Takes note of what the robot itself reports about its errors (a real arm's reflexes; a
+    /// simulator never reports any). Called with every fresh state before [`Self::tick`].
+    /// Returns the stopped chunk's final reply once the outcome is known: recovered
+    /// (`recovered_replan_required`, the command restarts at the measured joints) or not
+    /// (`operator_required`, latched until the operator clears it). A second reflex within the
+    /// window needs the operator too. Allocation-free.
+    pub fn robot_reports(&mut self, state: &SimState) -> Option<Reply> {
+        use ipc_schema::{ROBOT_NEEDS_OPERATOR, ROBOT_OK};
+        let (before, now) = (self.robot_error, state.robot_error);
+        let new_reflex = state.reflexes > self.robot_reflexes;
+        self.robot_reflexes = state.reflexes;
+        if before == now && !new_reflex {
+            return None;
+        }
+        self.robot_error = now;
+        let text = state.error_str();
+        if before == ROBOT_OK && (now != ROBOT_OK || new_reflex) {
+            // The robot's own reflex stopped the motion.
+            let repeated = self.last_reflex_s.is_some_and(|t| self.clock_s - t < self.reflex_window_s);
+            self.last_reflex_s = Some(self.clock_s);
+            if repeated && self.fault.is_none() {
+                self.fault = Some(Text::of(format_args!(
+                    "a second reflex of the robot within {:.0} s ({text})",
+                    self.reflex_window_s
+                )));
+            }
+            if let Some(a) = self.active.take() {
+                let n = self.plan.len();
+                let done = self.reference.reached;
+                let r = if repeated {
+                    let why = format_args!(
+                        "stopped: the robot's own reflex ({text}) stopped waypoint {} of {n}, the second within {:.0} s; the arm holds and needs an operator: stop sending actions and report",
+                        (done + 1).min(n),
+                        self.reflex_window_s
+                    );
+                    Reply::formatted(a.id, a.client, Status::OperatorRequired, why)
+                } else {
+                    let why = format_args!(
+                        "reflex: the robot stopped itself ({text}) during waypoint {} of {n} and recovered automatically; observe and replan from the measured state",
+                        (done + 1).min(n)
+                    );
+                    Reply::formatted(a.id, a.client, Status::RecoveredReplanRequired, why)
+                };
+                let mut r = a.stamp(r);
+                r.executed = done as u32;
+                self.stop_reply = Some(r);
+            }
+            if self.tracker.is_some() {
+                self.halting = true;
+            }
+        }
+        if now == ROBOT_NEEDS_OPERATOR {
+            if self.fault.is_none() {
+                self.fault = Some(Text::of(format_args!("the robot did not recover from its error ({text})")));
+            }
+            if let Some(r) = self.stop_reply.as_mut().filter(|r| r.status != Status::OperatorRequired as u32) {
+                let why = format_args!(
+                    "stopped: the robot's own reflex ({text}) stopped the motion and automatic recovery did not clear it; the arm holds and needs an operator: stop sending actions and report"
+                );
+                let mut escalated = Reply::formatted(r.id, r.client, Status::OperatorRequired, why);
+                (escalated.executed, escalated.accepted_ns, escalated.first_motion_ns) =
+                    (r.executed, r.accepted_ns, r.first_motion_ns);
+                *r = escalated;
+            }
+            return self.stop_reply.take();
+        }
+        if now == ROBOT_OK {
+            // Recovered: restart at rest at the measured joints, as after a robot side came back.
+            self.halting = false;
+            self.braking_before += self.tracker.map_or(0, |t| t.braking_ticks);
+            self.tracker = None;
+            *self.plan = ChunkPlan::hold(state.q_rad, -1.0);
+            self.finger_prev = state.finger_m;
+            self.finger_still_ticks = 0;
+            self.ensure_tracker(state);
+            self.q_ref = state.q_rad;
+            return self.stop_reply.take();
+        }
+        None
     }
 
     /// Whether the robot side is silent (between [`Self::robot_lost`] and [`Self::robot_back`]).
@@ -239,7 +418,7 @@ impl Controller {
         self.halting = false;
         self.braking_before += self.tracker.map_or(0, |t| t.braking_ticks);
         self.tracker = None;
-        self.plan = ChunkPlan::hold(state.q_rad, -1.0);
+        *self.plan = ChunkPlan::hold(state.q_rad, -1.0);
         self.finger_prev = state.finger_m;
         self.finger_still_ticks = 0;
         self.rotvec = None;
@@ -267,9 +446,34 @@ impl Controller {
         self.active.map(|a| a.id).or(self.pending_reset.map(|r| r.0)).unwrap_or(0)
     }
 
-    /// Takes a request. Returns an immediate reply for rejections; accepted work replies later
-    /// from [`Self::tick`].
+    /// Takes a request and decides it at once, the chunk's own checks included (lockstep, and
+    /// wall mode when acceptance runs on the tick): [`Self::admit`], [`Self::plan_now`] and
+    /// [`Self::commit`] in a row. Returns an immediate reply for rejections (or the superseded
+    /// chunk's reply); accepted work replies later from [`Self::tick`].
     pub fn request(&mut self, req: &Request, state: &SimState) -> (Option<Reply>, Forward) {
+        match self.admit(req, state, None) {
+            Admission::Answer(reply, fwd) => (reply, fwd),
+            Admission::Plan(job) => {
+                let outcome = self.plan_now(&job, req);
+                (self.commit(&job, outcome, None, state), Forward::None)
+            }
+        }
+    }
+
+    /// What a chunk's own checks need, for the planner thread.
+    pub fn acceptance(&self) -> Acceptance {
+        Acceptance { robot: self.robot.clone(), cfg: self.cfg, ik: self.ik.clone(), safety: self.safety.clone() }
+    }
+
+    /// The first half of taking a request, on the tick's side and cheap: everything that
+    /// depends on the controller's state (operator-only requests, a lost robot side, braking,
+    /// another request running, faults, the robot's own recovery, resets, the control type,
+    /// the length). A chunk that passes comes back as a [`Job`] whose own checks are left to
+    /// [`Acceptance::plan`] (here: [`Self::plan_now`]); their outcome goes to [`Self::commit`].
+    /// `in_flight`: the client whose chunks are being checked elsewhere, if any; they count as
+    /// that client's running chunk (others wait, its own next chunk will replace it).
+    /// Allocation-free.
+    pub fn admit(&mut self, req: &Request, state: &SimState, in_flight: Option<u64>) -> Admission {
         if state.seq > 0 {
             self.ensure_tracker(state);
         }
@@ -279,24 +483,16 @@ impl Controller {
             // (SO_PEERCRED-checked, see `operator`) clears faults.
             self.last_rejection = Some("operator_only");
             let why = "clearing a fault is an operator request: it is taken only on the operator socket (`r2g clear`), never from the agent channel";
-            return (Some(Reply::new(req.id, req.client, Status::Rejected, why)), Forward::None);
+            return Admission::Answer(Some(Reply::new(req.id, req.client, Status::Rejected, why)), Forward::None);
         }
-        if let Some(since) = self.robot_lost_since_s {
-            self.last_rejection = Some("robot_lost");
-            let why = format_args!(
-                "the robot side has published no state for {:.0} ms: the arm holds its last command and requests are refused until fresh state arrives; observe again later, or stop and report",
-                (self.clock_s - since) * 1e3 + self.lost_after_ms
-            );
-            return (Some(Reply::formatted(req.id, req.client, Status::Rejected, why)), Forward::None);
-        }
-        // A new chunk from the client whose chunk is running replaces it, blending from the
-        // current command; anything else waits for the running request to finish.
-        let preempts = req.kind == RequestKind::Chunk as u32 && self.active.is_some_and(|a| a.client == req.client);
-        if self.halting {
-            return self.reject(req, Rejection::Halting);
-        }
-        if self.busy() && !preempts {
-            return self.reject(req, Rejection::Busy);
+        // A new chunk from the client whose chunk is running (or being checked) replaces it,
+        // blending from the current command; anything else waits for the running request.
+        let chunk = req.kind == RequestKind::Chunk as u32;
+        let running = self.active.map(|a| a.client).or(in_flight);
+        let preempts = chunk && running == Some(req.client);
+        let busy = (self.busy() || in_flight.is_some()) && !preempts;
+        if let Some(r) = self.refusal(req.id, req.client, chunk, busy) {
+            return Admission::Answer(Some(r), Forward::None);
         }
         let Some(tracker) = self.tracker else {
             let r = Reply::new(
@@ -305,97 +501,186 @@ impl Controller {
                 Status::Failed,
                 "the runtime has no robot state yet: the simulator is not running",
             );
-            return (Some(r), Forward::None);
+            return Admission::Answer(Some(r), Forward::None);
         };
-        if let (Some(f), true) = (self.fault, req.kind == RequestKind::Chunk as u32) {
-            self.last_rejection = Some("operator_required");
-            let why = format_args!(
-                "the arm is in a fault ({f}) and needs an operator to clear it; every command returns 0 until then: stop and report"
-            );
-            return (Some(Reply::formatted(req.id, req.client, Status::OperatorRequired, why)), Forward::None);
-        }
         match req.kind {
             k if k == RequestKind::Reset as u32 && self.profile == Profile::Franka => {
                 let why = "reset on the franka profile only refreshes observations: nothing moved, objects are not restored, faults are not cleared";
-                (Some(Reply::new(req.id, req.client, Status::Executed, why)), Forward::None)
+                Admission::Answer(Some(Reply::new(req.id, req.client, Status::Executed, why)), Forward::None)
             }
             k if k == RequestKind::Reset as u32 => {
                 let sim_id = self.next_reset_id;
                 self.next_reset_id += 1;
                 self.pending_reset = Some((req.id, req.client, sim_id));
-                (None, Forward::Reset { sim_reset_id: sim_id })
+                Admission::Answer(None, Forward::Reset { sim_reset_id: sim_id })
             }
             k if k == RequestKind::Chunk as u32 => {
                 let Some(ct) = ControlType::from_u32(req.control_type) else {
                     return self.reject(req, Rejection::UnknownControlType(req.control_type));
                 };
-                if let (Some(locked), Profile::Simulation) = (self.locked, self.profile) {
-                    if locked != ct {
-                        return self
-                            .reject(req, Rejection::ControlTypeLocked { locked: locked.name(), requested: ct.name() });
-                    }
+                if let Some(why) = self.locked_out(ct) {
+                    return self.reject(req, why);
                 }
                 let len = (req.len as usize).min(req.actions.len() + 1);
                 if len > req.actions.len() {
                     return self.reject(req, Rejection::TooLong { len: req.len as usize, max: req.actions.len() });
                 }
-                let (actions, safety) = (&req.actions[..len], self.safety.as_ref());
-                let plan = match ct {
-                    ControlType::Joint => {
-                        ChunkPlan::joint(actions, req.freq_hz, tracker.q_rad, &self.robot, &self.cfg, safety)
-                    }
-                    ControlType::EePose => ChunkPlan::ee_pose(
-                        actions,
-                        req.freq_hz,
-                        tracker.q_rad,
-                        &self.robot,
-                        &self.cfg,
-                        &self.ik,
-                        safety,
-                    ),
-                };
-                match plan {
-                    Ok(plan) => {
-                        let superseded = self.active.map(|old| {
-                            let mut r = old.stamp(Reply::formatted(
-                                old.id,
-                                old.client,
-                                Status::Failed,
-                                format_args!("superseded by request {} before it finished", req.id),
-                            ));
-                            r.executed = self.reference.reached as u32;
-                            r
-                        });
-                        self.plan = plan;
-                        self.q_ref = tracker.q_rad;
-                        self.locked = Some(ct);
-                        let now = ipc_schema::monotonic_ns();
-                        self.active = Some(Active {
-                            id: req.id,
-                            client: req.client,
-                            t_s: 0.0,
-                            phase: Phase::Moving,
-                            accepted_ns: now,
-                            first_motion_ns: 0,
-                            q0: state.q_rad,
-                            finger0: state.finger_m,
-                        });
-                        self.force_at_start_n = norm(self.force_n);
-                        let mut accepted = Reply::new(req.id, req.client, Status::Accepted, "accepted: executing");
-                        accepted.accepted_ns = now;
-                        self.accepted = Some(accepted);
-                        (superseded, Forward::None)
-                    }
-                    Err(why) => self.reject(req, why),
-                }
+                Admission::Plan(Job {
+                    id: req.id,
+                    client: req.client,
+                    ct,
+                    len,
+                    freq_hz: req.freq_hz,
+                    start_q: tracker.q_rad,
+                })
             }
             other => self.reject(req, Rejection::UnknownRequestKind(other)),
         }
     }
 
-    fn reject(&mut self, req: &Request, why: Rejection) -> (Option<Reply>, Forward) {
+    /// A chunk's own checks, here and now: the plan goes to a spare box that [`Self::commit`]
+    /// swaps in. `req` is the request `job` was admitted from.
+    pub fn plan_now(&mut self, job: &Job, req: &Request) -> Result<(), Rejection> {
+        *self.spare = plan_chunk(job, &req.actions, &self.robot, &self.cfg, &self.ik, self.safety.as_ref())?;
+        Ok(())
+    }
+
+    /// The second half of taking a chunk, on the tick's side: the outcome of its checks. The
+    /// state is checked again, since it may have changed while the checks ran (a stop, a fault,
+    /// a lost robot side, the control type locked by the chunk before), and so is the start:
+    /// the checks started from the command at admission, so the chunk is refused when the
+    /// command has since moved more than [`STALE_START_RAD`] on any joint (the chunk it
+    /// replaces kept moving while a slow planner worked). Otherwise the plan (`plan`, or with
+    /// `None` the spare filled by [`Self::plan_now`]) is swapped in, neither copied nor
+    /// allocated, and runs from the next tick on, blending from the current command as any
+    /// replacing chunk does: the limiter takes the command from where it is onto the new
+    /// reference within every limit, and each tick's safety checks cover the stretch between.
+    /// Returns the reply to send now (a rejection, or the replaced chunk's `failed`); the
+    /// `accepted` reply follows from [`Self::take_accepted`]. Allocation-free.
+    pub fn commit(
+        &mut self,
+        job: &Job,
+        outcome: Result<(), Rejection>,
+        plan: Option<&mut Box<ChunkPlan>>,
+        state: &SimState,
+    ) -> Option<Reply> {
+        self.last_rejection = None;
+        if let Err(why) = outcome {
+            return Some(self.rejection(job.id, job.client, why));
+        }
+        let busy = self.pending_reset.is_some() || self.active.is_some_and(|a| a.client != job.client);
+        if let Some(r) = self.refusal(job.id, job.client, true, busy) {
+            return Some(r);
+        }
+        if let Some(why) = self.locked_out(job.ct) {
+            return Some(self.rejection(job.id, job.client, why));
+        }
+        let Some(tracker) = self.tracker else {
+            let why = "the runtime has no robot state yet: the simulator is not running";
+            return Some(Reply::new(job.id, job.client, Status::Failed, why));
+        };
+        let (mut moved, mut joint) = (0.0f64, 0);
+        for j in 0..N_JOINTS {
+            let d = (tracker.q_rad[j] - job.start_q[j]).abs();
+            if d > moved {
+                (moved, joint) = (d, j);
+            }
+        }
+        if moved > STALE_START_RAD {
+            self.last_rejection = Some("stale_start");
+            let why = format_args!(
+                "the arm moved {moved:.3} rad at joint {} while this chunk was being checked (more than {STALE_START_RAD} rad); nothing of it ran: send it again from the current state",
+                joint + 1
+            );
+            return Some(Reply::formatted(job.id, job.client, Status::Rejected, why));
+        }
+        let superseded = self.active.map(|old| {
+            let mut r = old.stamp(Reply::formatted(
+                old.id,
+                old.client,
+                Status::Failed,
+                format_args!("superseded by request {} before it finished", job.id),
+            ));
+            r.executed = self.reference.reached as u32;
+            r
+        });
+        match plan {
+            Some(p) => std::mem::swap(&mut self.plan, p),
+            None => std::mem::swap(&mut self.plan, &mut self.spare),
+        }
+        self.q_ref = tracker.q_rad;
+        self.locked = Some(job.ct);
+        let now = ipc_schema::monotonic_ns();
+        self.active = Some(Active {
+            id: job.id,
+            client: job.client,
+            t_s: 0.0,
+            phase: Phase::Moving,
+            accepted_ns: now,
+            first_motion_ns: 0,
+            q0: state.q_rad,
+            finger0: state.finger_m,
+        });
+        self.force_at_start_n = norm(self.force_n);
+        let mut accepted = Reply::new(job.id, job.client, Status::Accepted, "accepted: executing");
+        accepted.accepted_ns = now;
+        self.accepted = Some(accepted);
+        superseded
+    }
+
+    /// Why the controller's state refuses a request now, if it does: the robot side is silent,
+    /// the arm is braking, another request runs (`busy`), or (chunks only) an operator fault or
+    /// the robot's own recovery holds the arm. Checked on arrival and again at commit.
+    fn refusal(&mut self, id: u64, client: u64, chunk: bool, busy: bool) -> Option<Reply> {
+        if let Some(since) = self.robot_lost_since_s {
+            self.last_rejection = Some("robot_lost");
+            let why = format_args!(
+                "the robot side has published no state for {:.0} ms: the arm holds its last command and requests are refused until fresh state arrives; observe again later, or stop and report",
+                (self.clock_s - since) * 1e3 + self.lost_after_ms
+            );
+            return Some(Reply::formatted(id, client, Status::Rejected, why));
+        }
+        if self.halting {
+            return Some(self.rejection(id, client, Rejection::Halting));
+        }
+        if busy {
+            return Some(self.rejection(id, client, Rejection::Busy));
+        }
+        if !chunk {
+            return None;
+        }
+        if let Some(f) = self.fault {
+            self.last_rejection = Some("operator_required");
+            let why = format_args!(
+                "the arm is in a fault ({f}) and needs an operator to clear it; every command returns 0 until then: stop and report"
+            );
+            return Some(Reply::formatted(id, client, Status::OperatorRequired, why));
+        }
+        if self.robot_error != ipc_schema::ROBOT_OK {
+            self.last_rejection = Some("robot_recovering");
+            let why = "the robot's own reflex stopped the arm and its automatic recovery is running; observe again in a moment and replan from the measured state";
+            return Some(Reply::new(id, client, Status::Rejected, why));
+        }
+        None
+    }
+
+    /// Simulation profile: a chunk of another control type than the episode's first.
+    fn locked_out(&self, ct: ControlType) -> Option<Rejection> {
+        match (self.locked, self.profile) {
+            (Some(locked), Profile::Simulation) if locked != ct => {
+                Some(Rejection::ControlTypeLocked { locked: locked.name(), requested: ct.name() })
+            }
+            _ => None,
+        }
+    }
+
+    fn rejection(&mut self, id: u64, client: u64, why: Rejection) -> Reply {
         self.last_rejection = Some(why.kind());
-        (Some(Reply::formatted(req.id, req.client, Status::Rejected, format_args!("{why}"))), Forward::None)
+        Reply::formatted(id, client, Status::Rejected, format_args!("{why}"))
+    }
+
+    fn reject(&mut self, req: &Request, why: Rejection) -> Admission {
+        Admission::Answer(Some(self.rejection(req.id, req.client, why)), Forward::None)
     }
 
     /// The simulator's reset id the runtime waits for, if a reset is in flight.
@@ -637,6 +922,7 @@ impl Controller {
             dq_rad_s: tracker.dq_rad_s,
             finger_m: tracker.finger_m,
             session: state.session,
+            clear_seq: self.clear_seq,
         };
         (cmd, reply)
     }

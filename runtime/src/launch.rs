@@ -134,6 +134,15 @@ pub struct UpOptions {
     pub ready_timeout: Duration,
 }
 
+/// What serves as the robot side of an instance.
+#[derive(Debug, Clone)]
+pub enum RobotSide {
+    /// `r2g-sim`: MuJoCo, cameras, resets, the evaluator.
+    Sim,
+    /// `r2g-fci`: a Franka arm at `address` (`host` or `host:port`), with extra arguments.
+    Fci { address: String, extra: Vec<String> },
+}
+
 /// A running instance. Dropping it stops both processes.
 pub struct Instance {
     pub name: String,
@@ -171,6 +180,12 @@ impl Instance {
     /// Starts sim-host then runtime and waits until an agent could connect: the runtime
     /// publishes robot state and every camera has delivered a frame.
     pub fn up(opts: &UpOptions) -> anyhow::Result<Self> {
+        Self::up_with(opts, &RobotSide::Sim)
+    }
+
+    /// [`Self::up`] with another robot side: a real Franka arm served by `r2g-fci` (wall mode and
+    /// the Franka profile only; nothing is simulated, so there are no cameras and no resets).
+    pub fn up_with(opts: &UpOptions, side: &RobotSide) -> anyhow::Result<Self> {
         Services::new(&opts.instance)?;
         let cleaned = ipc_schema::cleanup_dead_nodes();
         if cleaned > 0 {
@@ -193,7 +208,30 @@ impl Instance {
             opts.render_hz.to_string(),
         ];
         sim_args.extend(opts.sim_args.iter().cloned());
-        let sim = spawn(&sibling("r2g-sim")?, &sim_args)?;
+        let sim = match side {
+            RobotSide::Sim => spawn(&sibling("r2g-sim")?, &sim_args)?,
+            RobotSide::Fci { address, extra } => {
+                let rc = opts.robot_config.as_ref().context("a real arm needs a robot config (its franka table)")?;
+                let profile = crate::RobotConfig::load(rc)?.profile;
+                if opts.mode != Mode::Wall || profile != ipc_schema::Profile::Franka {
+                    bail!(
+                        "a real arm runs in wall mode with the franka profile (\"profile\": \"franka\" in {}), not in lockstep or the simulation profile",
+                        rc.display()
+                    );
+                }
+                let mut args = vec![
+                    opts.scene.display().to_string(),
+                    "--instance".into(),
+                    opts.instance.clone(),
+                    "--robot".into(),
+                    address.clone(),
+                    "--robot-config".into(),
+                    rc.display().to_string(),
+                ];
+                args.extend(extra.iter().cloned());
+                spawn(&sibling("r2g-fci")?, &args)?
+            }
+        };
         let mode = if opts.mode == Mode::Lockstep { "lockstep" } else { "wall" };
         let mut control_args = vec![scene, "--instance".into(), opts.instance.clone(), "--mode".into(), mode.into()];
         if let Some(rc) = &opts.robot_config {
@@ -287,7 +325,7 @@ impl Instance {
             }
         };
         if let Some(s) = self.sim.try_wait()? {
-            return Ok(Some(describe("r2g-sim", self.sim.id(), s)));
+            return Ok(Some(describe("the robot side", self.sim.id(), s)));
         }
         if let Some(s) = self.control.try_wait()? {
             return Ok(Some(describe("r2g-control", self.control.id(), s)));

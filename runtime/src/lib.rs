@@ -6,6 +6,7 @@ pub mod controller;
 pub mod health;
 pub mod launch;
 pub mod operator;
+pub mod planner;
 pub mod robot_config;
 pub mod rt;
 pub mod stats;
@@ -189,10 +190,34 @@ impl Ports {
     }
 
     /// Serves every waiting request. Returns true when replies went out and agents need waking.
+    /// With a planner (wall mode), the chunks it has finished checking are committed first,
+    /// oldest first, then new requests are admitted and their chunks handed to it; without one
+    /// (lockstep, or `R2G_ACCEPT_ON_TICK=1`) every request is decided here and now.
     /// Agents come and go (and may be hostile): a failure on their ports is counted, never fatal.
     #[inline]
-    fn serve_requests(&self, ctl: &mut Controller, latest: &SimState, stats: &mut TickStats) -> anyhow::Result<bool> {
+    fn serve_requests(
+        &self,
+        ctl: &mut Controller,
+        mut planner: Option<&mut planner::Planner>,
+        latest: &SimState,
+        stats: &mut TickStats,
+    ) -> anyhow::Result<bool> {
+        use controller::{Admission, Forward};
         let mut replied = false;
+        if let Some(p) = planner.as_deref_mut() {
+            if !p.alive() {
+                // A panic in a chunk's checks: stop, as the same panic on the tick would have.
+                bail!("the planner thread stopped (a panic while checking a chunk)");
+            }
+            p.take_finished(|f| {
+                let reply = ctl.commit(f.job, f.outcome, Some(f.plan), latest);
+                for r in [reply, ctl.take_accepted()].into_iter().flatten() {
+                    self.reply(r, stats);
+                    replied = true;
+                }
+                stats.accept.record(rt::now_ns().saturating_sub(f.received_ns));
+            });
+        }
         loop {
             let req = match self.req_sub.receive() {
                 Ok(Some(r)) => r,
@@ -202,19 +227,45 @@ impl Ports {
                     break;
                 }
             };
-            let (reply, fwd) = ctl.request(&req, latest);
+            let received = rt::now_ns();
+            let in_flight = planner.as_deref().and_then(planner::Planner::in_flight);
+            let (reply, fwd) = match ctl.admit(&req, latest, in_flight) {
+                Admission::Answer(reply, fwd) => (reply, fwd),
+                Admission::Plan(job) => match planner.as_deref_mut().map(|p| p.submit(&job, &req, received)) {
+                    // Replied to when the planner is done (a later tick).
+                    Some(true) => (None, Forward::None),
+                    Some(false) => {
+                        let why = format_args!(
+                            "{} chunks of this client are still being checked: wait for their replies before sending more",
+                            planner::SLOTS
+                        );
+                        (Some(Reply::formatted(job.id, job.client, ipc_schema::Status::Rejected, why)), Forward::None)
+                    }
+                    None => {
+                        let outcome = ctl.plan_now(&job, &req);
+                        let reply = ctl.commit(&job, outcome, None, latest);
+                        stats.accept.record(rt::now_ns().saturating_sub(received));
+                        (reply, Forward::None)
+                    }
+                },
+            };
             for r in [reply, ctl.take_accepted()].into_iter().flatten() {
-                if self.reply_pub.send_copy(r).is_err() {
-                    stats.agent_port_errors += 1;
-                }
+                self.reply(r, stats);
                 replied = true;
             }
-            if let controller::Forward::Reset { sim_reset_id } = fwd {
+            if let Forward::Reset { sim_reset_id } = fwd {
                 self.reset_pub.send_copy(SimReset { id: sim_reset_id })?;
                 self.sim_wake.notify()?;
             }
         }
         Ok(replied)
+    }
+
+    #[inline]
+    fn reply(&self, r: Reply, stats: &mut TickStats) {
+        if self.reply_pub.send_copy(r).is_err() {
+            stats.agent_port_errors += 1;
+        }
     }
 
     /// Publishes to agents; a failure is counted, never fatal.
@@ -299,7 +350,8 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
     let dt_s = cfg.period_ns as f64 * 1e-9;
     let mut ctl = Controller::new(robot, cfg.robot.limiter(), dt_s)
         .with_safety(safety)
-        .with_profile(cfg.robot.profile, cfg.robot.reflexes);
+        .with_profile(cfg.robot.profile, cfg.robot.reflexes)
+        .with_reflex_window(cfg.robot.reflexes.window_s);
     // Leftovers of a robot side or runtime that was SIGKILLed would hold their ports' slots.
     ipc_schema::cleanup_dead_nodes();
     let ports = Ports::open(&services)?;
@@ -310,12 +362,27 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
     let policy = operator::Policy::new(cfg.operator_group.as_deref())?;
     let _operator = operator::serve(&cfg.instance, health.clone(), policy)?;
     let notifier = health::spawn_notifier(health.clone());
-    let result = run_loops(cfg, &ports, &mut ctl, &sim, &health);
+    // Wall mode checks chunks on a planner thread beside the loop; R2G_ACCEPT_ON_TICK=1 keeps
+    // them on the tick thread (the old way, for `r2g bench accept` to compare).
+    let on_tick = std::env::var_os("R2G_ACCEPT_ON_TICK").is_some_and(|v| v == "1");
+    let mut planner = match (cfg.mode, on_tick) {
+        (Mode::Wall, false) => {
+            Some(planner::Planner::spawn(ctl.acceptance(), cfg.cpu).context("starting the planner thread")?)
+        }
+        _ => None,
+    };
+    let result = run_loops(cfg, &ports, &mut ctl, &sim, &health, planner.as_mut());
     health.stopping.store(true, std::sync::atomic::Ordering::Relaxed);
     if let Some(t) = notifier {
         let _ = t.join();
     }
-    result
+    result.map(|mut stats| {
+        stats.acceptance = if planner.is_some() { "planner" } else { "tick" };
+        if let Some(p) = planner {
+            stats.planning = p.stop();
+        }
+        stats
+    })
 }
 
 fn run_loops(
@@ -324,6 +391,7 @@ fn run_loops(
     ctl: &mut Controller,
     sim: &PeerWatch,
     health: &health::Health,
+    planner: Option<&mut planner::Planner>,
 ) -> anyhow::Result<TickStats> {
     // The first state: the sim-host republishes while idle, so this arrives within ~20 ms.
     let mut latest = SimState::default();
@@ -351,7 +419,7 @@ fn run_loops(
     health.last_state_ns.store(rt::now_ns(), std::sync::atomic::Ordering::Relaxed);
 
     match cfg.mode {
-        Mode::Wall => wall_loop(cfg, ports, ctl, latest, info, health),
+        Mode::Wall => wall_loop(cfg, ports, ctl, latest, info, health, planner),
         Mode::Lockstep => lockstep_loop(cfg, ports, ctl, sim, latest, info, health),
     }
 }
@@ -366,6 +434,7 @@ fn wall_loop(
     mut latest: SimState,
     info: RuntimeInfo,
     health: &health::Health,
+    mut planner: Option<&mut planner::Planner>,
 ) -> anyhow::Result<TickStats> {
     use std::sync::atomic::Ordering::Relaxed;
     let rt = rt::setup(cfg.fifo_priority, cfg.cpu);
@@ -388,15 +457,30 @@ fn wall_loop(
     let mut robot_seq = 0u64;
     let (mut window_max, mut window_end) = (0u64, start + 1_000_000_000);
     let mut clear_pending: Option<(u64, bool)> = None;
+    // Who paces the tick: our clock, or a robot side that publishes one state per robot cycle
+    // and uses only the command answering it (a real arm's 1 kHz packets; see the README).
+    let paced = latest.paced != 0;
+    let mut prev_robot_time_s = latest.sim_time_s;
+    // Tick-to-command latency counts skipped deadlines only when our clock sets them.
+    let command_period = if paced { 0 } else { period };
     loop {
-        if period > 2 * CONNECT_LEAD_NS {
-            rt::sleep_until(deadline - CONNECT_LEAD_NS, 0);
-            ports.update_connections(&mut stats);
+        if paced {
+            // The next state, or the deadline (two periods after the last one) so that the loop
+            // keeps cycling, holds and notices a silent robot side.
+            wait_for_state_until(ports, deadline);
+        } else {
+            if period > 2 * CONNECT_LEAD_NS {
+                rt::sleep_until(deadline - CONNECT_LEAD_NS, 0);
+                ports.update_connections(&mut stats);
+            }
+            rt::sleep_until(deadline, cfg.spin_ns);
         }
-        rt::sleep_until(deadline, cfg.spin_ns);
         let woke = rt::now_ns();
-        let late = woke.saturating_sub(deadline);
-        stats.wake.record(late);
+        // Clocked: how late after its deadline the tick starts (paced: after the state, below).
+        let mut late = woke.saturating_sub(deadline);
+        if !paced {
+            stats.wake.record(late);
+        }
 
         // ---- tick: no allocation, no locks, no logging ----
         let scope = alloc_count::TickScope::enter();
@@ -406,6 +490,11 @@ fn wall_loop(
         // the same state, as an idle sim-host sends, proves nothing).
         let fresh = ports.newest_state_or_none(&mut incoming, &mut stats)
             && (incoming.session != latest.session || incoming.seq > latest.seq);
+        if paced && fresh {
+            // Paced: how long after the robot side published its state the tick starts on it.
+            late = woke.saturating_sub(incoming.published_ns);
+            stats.wake.record(late);
+        }
         if fresh && !ctl.is_robot_lost() && incoming.session != latest.session {
             // Another robot side answers (a restart faster than the timeout): what was running
             // belonged to its predecessor. Stop and resume from its state as after a loss.
@@ -416,6 +505,8 @@ fn wall_loop(
         } else if fresh && !ctl.is_robot_lost() {
             latest = incoming;
             last_state_ns = woke;
+            // What the robot itself reports (a real arm's reflexes and their recovery).
+            back = ctl.robot_reports(&latest);
         } else if fresh {
             // Back, but not used until its ports are registered (one tick later) and it rests:
             // until then `latest` keeps the lost side's state, so the held command still
@@ -428,13 +519,25 @@ fn wall_loop(
             } else {
                 robot_seen_again = true;
             }
-        } else if !ctl.is_robot_lost() && woke - last_state_ns > timeout_ns {
+        } else if !ctl.is_robot_lost() && woke - last_state_ns > timeout_ns + recovery_allowance(&latest) {
             // The robot side is silent: the loop keeps cycling, holds, and reports it.
             ctl.robot_lost((woke - last_state_ns) as f64 / 1e6);
             stats.robot_losses += 1;
             robot_seen_again = false;
         }
-        let (cmd, reply) = ctl.tick(&latest);
+        let (mut cmd, mut reply) = ctl.tick(&latest);
+        if paced && fresh {
+            // A robot cycle without a state (a lost packet) still moved the robot's own
+            // interpolation on: the command covers every cycle since the last state.
+            let cycles = ((latest.sim_time_s - prev_robot_time_s) / (period as f64 * 1e-9)).round();
+            for _ in 1..(cycles.clamp(1.0, 4.0) as u32) {
+                (cmd, reply) = {
+                    let (c, r) = ctl.tick(&latest);
+                    (c, reply.or(r))
+                };
+            }
+            prev_robot_time_s = latest.sim_time_s;
+        }
         let reply = back.or(reply);
         // Every command is checked against the limits (not on a tick whose command restarted
         // at the measured state: a reset or a robot side that came back).
@@ -450,10 +553,11 @@ fn wall_loop(
         let lost = lost_before || ctl.is_robot_lost();
         if !lost {
             ports.command(cmd, &mut stats);
+            stats.command_sent(woke.saturating_sub(late), command_period, rt::now_ns());
         }
-        // Requests after the command is out: accepting one (IK, path checks) can take tens of
-        // microseconds, which then delays nothing but this tick's sleep.
-        let rejected = ports.serve_requests(ctl, &latest, &mut stats)?;
+        // Requests after the command is out. A chunk's own checks (IK, path checks: up to about
+        // a millisecond) run on the planner thread; the tick only admits and commits.
+        let rejected = ports.serve_requests(ctl, planner.as_deref_mut(), &latest, &mut stats)?;
         // The state first: an agent woken by the reply must already see where the arm is.
         robot_seq += 1;
         let wake_agents = rejected || reply.is_some();
@@ -466,6 +570,10 @@ fn wall_loop(
         // ---- end of tick ----
         if lost {
             ports.command(cmd, &mut stats);
+            stats.command_sent(woke.saturating_sub(late), command_period, rt::now_ns());
+        }
+        if let Some(p) = planner.as_deref_mut() {
+            p.wake();
         }
         // Agents come and go, and iceoryx2 registers a new listener inside `notify` (one
         // allocation per new agent), so their wake-up follows the tick instead of joining it.
@@ -476,7 +584,14 @@ fn wall_loop(
         let done = rt::now_ns();
         stats.compute.record(done - woke);
         stats.ticks += 1;
-        deadline = next_deadline(deadline, done, period, &mut stats);
+        if paced {
+            // Connections first (the robot's next state is most of a period away), then the
+            // deadline for the next state.
+            ports.update_connections(&mut stats);
+            deadline = done + 2 * period;
+        } else {
+            deadline = next_deadline(deadline, done, period, &mut stats);
+        }
         // What the notifier and the operator socket read: atomics, stored between ticks. A fault
         // reset is answered once a tick has published the state that shows it.
         if let Some((n, cleared)) = clear_pending.take() {
@@ -539,7 +654,7 @@ fn lockstep_loop(
         if sim.lost() {
             bail!("r2g-sim of instance '{}' stopped; the runtime stops too", cfg.instance);
         }
-        if ports.serve_requests(ctl, &latest, &mut stats)? {
+        if ports.serve_requests(ctl, None, &latest, &mut stats)? {
             // A reply can change what the state reports (a cleared fault, the locked type).
             robot_seq += 1;
             ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), None, &mut stats);
@@ -607,6 +722,31 @@ fn wait_for_state(
     }
 }
 
+/// Paced wall mode: returns once a state is waiting or at `deadline`. Agents' requests also
+/// wake the listener; they are served after the next tick's command, as in clocked mode.
+fn wait_for_state_until(ports: &Ports, deadline: u64) {
+    loop {
+        if ports.state_sub.has_samples().unwrap_or(true) {
+            return;
+        }
+        let now = rt::now_ns();
+        if now >= deadline {
+            return;
+        }
+        let _ = ports.wake.timed_wait(|_| {}, Duration::from_nanos(deadline - now));
+    }
+}
+
+/// How much longer than the state timeout a robot side may stay silent: a real arm's robot side
+/// publishes nothing while its bounded automatic error recovery runs (about a second at most).
+fn recovery_allowance(latest: &SimState) -> u64 {
+    if latest.robot_error == ipc_schema::ROBOT_RECOVERING {
+        2_000_000_000
+    } else {
+        0
+    }
+}
+
 /// Whether the measured arm is at rest (a robot side that came back is used only then, so the
 /// command restarting at the measured joints with zero velocity is no velocity jump).
 fn at_rest(s: &SimState) -> bool {
@@ -639,6 +779,7 @@ pub fn baseline_loop(duration: Duration, period_ns: u64, spin_ns: u64) -> TickSt
         stats.wake.record(woke.saturating_sub(deadline));
         let done = rt::now_ns();
         stats.compute.record(done - woke);
+        stats.command_sent(deadline, period_ns, done);
         stats.ticks += 1;
         deadline = next_deadline(deadline, done, period_ns, &mut stats);
         if done >= end {

@@ -16,6 +16,17 @@ pub struct Reflexes {
     pub reflex_force_n: f64,
     /// Stops the chunk and holds the arm until an operator clears it (`operator_required`).
     pub operator_force_n: f64,
+    /// A second reflex of the real robot within this many seconds needs an operator.
+    pub window_s: f64,
+    /// Real arm (FCI): joint torques above which the robot reports a contact, and above which
+    /// its own collision reflex stops it, Nm (the robot's set-collision-behaviour thresholds,
+    /// the same in its acceleration and constant-velocity phases).
+    pub contact_torque_nm: [f64; 7],
+    pub collision_torque_nm: [f64; 7],
+    /// The same for the Cartesian force/torque at the end effector (x, y, z in N, then the
+    /// moments in Nm).
+    pub contact_force_n: [f64; 6],
+    pub collision_force_n: [f64; 6],
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -39,7 +50,15 @@ impl Default for RobotConfig {
             max_joint_step_rad: 0.35,
             max_tcp_step_m: 0.05,
             max_tcp_step_rad: 0.35,
-            reflexes: Reflexes { reflex_force_n: 30.0, operator_force_n: 80.0 },
+            reflexes: Reflexes {
+                reflex_force_n: 30.0,
+                operator_force_n: 80.0,
+                window_s: 10.0,
+                contact_torque_nm: [20.0, 20.0, 18.0, 18.0, 16.0, 14.0, 12.0],
+                collision_torque_nm: [20.0, 20.0, 18.0, 18.0, 16.0, 14.0, 12.0],
+                contact_force_n: [20.0; 6],
+                collision_force_n: [20.0; 6],
+            },
         }
     }
 }
@@ -50,6 +69,29 @@ fn table<'a>(v: &'a Value, what: &str, keys: &[&str]) -> anyhow::Result<&'a Map<
         bail!("{what} has an unknown key \"{k}\"; accepted: {}", keys.join(", "));
     }
     Ok(m)
+}
+
+/// `N` numbers from `m[key]`, each within `lo..=hi`, or `default` when absent.
+fn numbers<const N: usize>(
+    m: &Map<String, Value>,
+    what: &str,
+    key: &str,
+    default: [f64; N],
+    lo: f64,
+    hi: f64,
+) -> anyhow::Result<[f64; N]> {
+    let Some(v) = m.get(key) else { return Ok(default) };
+    let Some(a) = v.as_array().filter(|a| a.len() == N) else {
+        bail!("{what}.{key} must be a list of {N} numbers, got {v}")
+    };
+    let mut out = [0.0; N];
+    for (o, x) in out.iter_mut().zip(a) {
+        match x.as_f64() {
+            Some(x) if x.is_finite() && (lo..=hi).contains(&x) => *o = x,
+            _ => bail!("{what}.{key}: {x} is not a number in the accepted range [{lo}, {hi}]"),
+        }
+    }
+    Ok(out)
 }
 
 /// A number from `m[key]` within `lo..=hi`, or `default` when absent.
@@ -79,13 +121,26 @@ impl RobotConfig {
             "control",
             &["default_freq_hz", "max_chunk_waypoints", "max_joint_step_rad", "max_tcp_step_m", "max_tcp_step_rad"],
         )?;
-        let franka = table(top.get("franka").unwrap_or(&empty), "franka", &["reflex_force_n", "operator_force_n"])?;
+        let franka = table(
+            top.get("franka").unwrap_or(&empty),
+            "franka",
+            &[
+                "reflex_force_n",
+                "operator_force_n",
+                "reflex_window_s",
+                "contact_torque_nm",
+                "collision_torque_nm",
+                "contact_force_n",
+                "collision_force_n",
+            ],
+        )?;
+        let r = &d.reflexes;
         let chunk =
             number(control, "control", "max_chunk_waypoints", d.max_chunk_waypoints as f64, 1.0, MAX_CHUNK as f64)?;
         if chunk.fract() != 0.0 {
             bail!("control.max_chunk_waypoints = {chunk} must be a whole number");
         }
-        Ok(Self {
+        let c = Self {
             profile,
             default_freq_hz: number(control, "control", "default_freq_hz", d.default_freq_hz, 0.5, 1000.0)?,
             max_chunk_waypoints: chunk as usize,
@@ -102,8 +157,30 @@ impl RobotConfig {
                     1.0,
                     1000.0,
                 )?,
+                window_s: number(franka, "franka", "reflex_window_s", r.window_s, 0.0, 3600.0)?,
+                contact_torque_nm: numbers(franka, "franka", "contact_torque_nm", r.contact_torque_nm, 0.1, 200.0)?,
+                collision_torque_nm: numbers(
+                    franka,
+                    "franka",
+                    "collision_torque_nm",
+                    r.collision_torque_nm,
+                    0.1,
+                    200.0,
+                )?,
+                contact_force_n: numbers(franka, "franka", "contact_force_n", r.contact_force_n, 0.1, 200.0)?,
+                collision_force_n: numbers(franka, "franka", "collision_force_n", r.collision_force_n, 0.1, 200.0)?,
             },
-        })
+        };
+        let r = &c.reflexes;
+        let pairs = r
+            .contact_torque_nm
+            .iter()
+            .zip(&r.collision_torque_nm)
+            .chain(r.contact_force_n.iter().zip(&r.collision_force_n));
+        if pairs.into_iter().any(|(lo, hi)| lo > hi) {
+            bail!("franka: every contact_* threshold must be at most the matching collision_* threshold");
+        }
+        Ok(c)
     }
 
     pub fn load(path: &Path) -> anyhow::Result<Self> {
@@ -157,6 +234,8 @@ mod tests {
             (r#"{"profile": "simulation", "control": {"max_tcp_step_m": "far"}}"#, "must be a number"),
             (r#"{"profile": "simulation", "franka": {"reflex_force_n": -3}}"#, "franka.reflex_force_n = -3"),
             (r#"{"profile": "simulation", "franka": {"torque": 3}}"#, "unknown key \"torque\""),
+            (r#"{"profile": "franka", "franka": {"collision_torque_nm": [1, 2]}}"#, "list of 7 numbers"),
+            (r#"{"profile": "franka", "franka": {"contact_force_n": [1, 2, 3, 4, 5, -6]}}"#, "-6"),
             (r#"{"profile": "#, "not valid JSON"),
         ] {
             let e = format!("{:#}", RobotConfig::parse(text).unwrap_err());

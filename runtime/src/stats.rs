@@ -105,6 +105,18 @@ impl Histogram {
 pub struct TickStats {
     pub wake: Histogram,
     pub compute: Histogram,
+    /// Tick-to-command latency: from each deadline (paced: the state's publication) until its
+    /// command was out. A deadline skipped by an overrun counts until the next command.
+    pub command: Histogram,
+    /// Chunks: from taking the request to its `accepted` or `rejected` reply (on the tick, or
+    /// through the planner thread).
+    pub accept: Histogram,
+    /// The planner thread's checks, one sample per chunk (wall mode, acceptance off the tick).
+    pub planning: Histogram,
+    /// Where chunks were checked: "planner" (a thread of its own) or "tick".
+    pub acceptance: &'static str,
+    /// The deadline of the last command (for [`Self::command_sent`]).
+    last_command_deadline: u64,
     pub overruns: u64,
     pub ticks: u64,
     /// Failed sends/receives on agent-facing ports (counted, never fatal).
@@ -119,6 +131,22 @@ pub struct TickStats {
 }
 
 impl TickStats {
+    /// Records the tick-to-command latency of a command sent at `sent` for the tick due at
+    /// `deadline`, and of every earlier deadline since the last command (`period` apart; an
+    /// overrun skipped them, so they waited for this one). `period` 0: this deadline only.
+    /// Allocation-free.
+    #[inline]
+    pub fn command_sent(&mut self, deadline: u64, period: u64, sent: u64) {
+        if period > 0 && self.last_command_deadline > 0 && deadline > self.last_command_deadline {
+            let skipped = ((deadline - self.last_command_deadline) / period).saturating_sub(1).min(10_000);
+            for k in 1..=skipped {
+                self.command.record(sent.saturating_sub(self.last_command_deadline + k * period));
+            }
+        }
+        self.command.record(sent.saturating_sub(deadline));
+        self.last_command_deadline = deadline;
+    }
+
     pub fn to_json(&self) -> serde_json::Value {
         serde_json::json!({
             "ticks": self.ticks,
@@ -132,6 +160,10 @@ impl TickStats {
             "tick_frees": crate::alloc_count::tick_frees(),
             "wake": self.wake.summary(),
             "compute": self.compute.summary(),
+            "command": self.command.summary(),
+            "accept": self.accept.summary(),
+            "planning": self.planning.summary(),
+            "acceptance": self.acceptance,
         })
     }
 }
@@ -154,5 +186,16 @@ mod tests {
         assert_eq!(cdf.last().map(|p| p[0]), Some(1000.0));
         h.record(u64::MAX / 2);
         assert_eq!(h.count(), 1001);
+    }
+
+    #[test]
+    fn a_skipped_deadline_waits_for_the_next_command() {
+        let mut s = TickStats::default();
+        s.command_sent(1_000_000, 1_000_000, 1_020_000);
+        // The tick of 2 ms overran: the next command goes out for 3 ms, at 3.02 ms.
+        s.command_sent(3_000_000, 1_000_000, 3_020_000);
+        assert_eq!(s.command.count(), 3);
+        assert_eq!(s.command.max_us(), 1020.0);
+        assert!((s.command.quantile_us(0.5) - 20.0).abs() < 0.2);
     }
 }

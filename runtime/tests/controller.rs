@@ -202,7 +202,11 @@ fn an_ee_pose_segment_is_checked_between_its_waypoints() {
 
 fn franka(reflex_n: f64, operator_n: f64) -> Controller {
     let (robot, safety) = runtime::scene_robot(&scene()).expect("scene");
-    let reflexes = runtime::robot_config::Reflexes { reflex_force_n: reflex_n, operator_force_n: operator_n };
+    let reflexes = runtime::robot_config::Reflexes {
+        reflex_force_n: reflex_n,
+        operator_force_n: operator_n,
+        ..runtime::RobotConfig::default().reflexes
+    };
     Controller::new(robot, LimiterConfig::default(), 0.001)
         .with_safety(safety)
         .with_profile(ipc_schema::Profile::Franka, reflexes)

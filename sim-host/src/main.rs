@@ -152,6 +152,7 @@ fn run() -> anyhow::Result<()> {
     let publish = |sim: &Sim, seq: u64, cmd: u64, reset_id: u64| -> anyhow::Result<()> {
         let mut state = sim.measure(seq, cmd, reset_id);
         state.session = session;
+        state.published_ns = ipc_schema::monotonic_ns();
         state_pub.send_copy(state)?;
         control_wake.notify()?;
         Ok(())

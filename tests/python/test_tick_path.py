@@ -39,6 +39,15 @@ def test_no_allocation_inside_ticks_while_serving_requests() -> None:
         assert robo.post_actions({"actions": [[9.0] * 8], "type": "joint", "freq": ""}) == 0
         assert robo.reset() == 1
         assert robo.post_actions({"actions": chunk, "type": "joint", "freq": "50"}) == 1
+        # ee_pose chunks, whose checks solve IK along the path on the planner thread: one out of
+        # reach (refused with the reason, nothing moved) and one that runs.
+        assert robo.reset() == 1
+        ee = robo.get_state([])["ee_pose"]
+        far = [[ee[0] + 0.04 * (k + 1), ee[1], ee[2]] + ee[3:] + [-1.0] for k in range(50)]
+        assert robo.post_actions({"actions": far, "type": "ee_pose", "freq": ""}) == 0
+        assert "not reachable" in robo.get_state([])["control_feedback"]["reason"]
+        near = [[ee[0], ee[1] + 0.01 * (k + 1), ee[2]] + ee[3:] + [1.0] for k in range(5)]
+        assert robo.post_actions({"actions": near, "type": "ee_pose", "freq": ""}) == 1
     finally:
         if previous is None:
             os.environ.pop("R2G_INSTANCE", None)
@@ -52,3 +61,6 @@ def test_no_allocation_inside_ticks_while_serving_requests() -> None:
         figures = json.load(f)
     assert figures["ticks"] > 1000
     assert figures["tick_allocations"] == 0, figures
+    # Every chunk was checked off the tick, on the planner thread.
+    assert figures["acceptance"] == "planner"
+    assert figures["planning"]["count"] == 5, figures["planning"]
