@@ -148,6 +148,8 @@ pub struct Instance {
     pub name: String,
     pub sim: Child,
     pub control: Child,
+    /// The robot side's program (`r2g-sim` or `r2g-fci`), for messages.
+    pub side: &'static str,
 }
 
 fn spawn(program: &Path, args: &[String]) -> anyhow::Result<Child> {
@@ -249,7 +251,8 @@ impl Instance {
                 return Err(e);
             }
         };
-        let mut inst = Self { name: opts.instance.clone(), sim, control };
+        let side = if matches!(side, RobotSide::Sim) { "r2g-sim" } else { "r2g-fci" };
+        let mut inst = Self { name: opts.instance.clone(), sim, control, side };
         if let Err(e) = inst.wait_ready(opts) {
             inst.stop();
             return Err(e);
@@ -325,7 +328,7 @@ impl Instance {
             }
         };
         if let Some(s) = self.sim.try_wait()? {
-            return Ok(Some(describe("the robot side", self.sim.id(), s)));
+            return Ok(Some(describe(self.side, self.sim.id(), s)));
         }
         if let Some(s) = self.control.try_wait()? {
             return Ok(Some(describe("r2g-control", self.control.id(), s)));
