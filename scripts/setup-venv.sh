@@ -14,6 +14,10 @@ ln -sfn "$lib" ".venv/mujoco-lib/$(basename "$lib")"
 # robo does; the sandbox finds them on its own path.
 site=$(.venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
 echo "$PWD/agent-host/py/lib" > "$site/r2g_agent_lib.pth"
+# Robot meshes: the DAE reader goes into the venv; the asset wheels of requirements-assets.txt are
+# only downloaded and unpacked into robots/packages/ (robots/assets.py; a no-op when up to date).
+.venv/bin/python -m pip install -q --disable-pip-version-check -r robots/requirements-tools.txt
+.venv/bin/python robots/assets.py install requirements-assets.txt
 # franka-sim, the independent FCI peer r2g-fci is tested against, pins a MuJoCo and numpy older
 # than ours: it gets its own environment (fci/franka-sim/serve.py runs in it).
 [ -x .venv-franka-sim/bin/python ] || python3 -m venv .venv-franka-sim

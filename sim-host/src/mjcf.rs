@@ -1,6 +1,14 @@
 //! Scene + URDF → MJCF. The robot keeps its URDF structure (one body per link, hinge/slide per
 //! joint); collision geometry is hidden (group 3), visual geometry is drawn and never collides.
 //!
+//! URDF meshes (`<mesh filename=… scale=…>`) become MuJoCo mesh assets: visual meshes are drawn
+//! as they are, collision meshes collide as their convex hulls (MuJoCo's rule for mesh geoms).
+//! A filename is `package://NAME/PATH` (looked up on [`package_search_path`]), `file://ABSOLUTE`,
+//! an absolute path or a path relative to the URDF's folder. STL, OBJ and MSH files go to MuJoCo
+//! directly; a COLLADA file `X.dae`, which MuJoCo cannot read, is drawn from the OBJ parts that
+//! `robots/assets.py` converted it into (`X.dae.parts/parts.txt`: one `FILE R G B A` line per
+//! material), each part in its own colour.
+//!
 //! Actuation: per arm joint a position servo and a velocity servo, driven with the runtime's
 //! position and velocity command (a PD that tracks without lag), on bodies with gravity
 //! compensation, with the total joint torque capped at the URDF effort. The gripper is one
@@ -8,6 +16,7 @@
 
 use std::collections::HashMap;
 use std::fmt::Write;
+use std::path::{Path, PathBuf};
 
 use crate::scene::{part_volume, CameraSpec, JointKind, PartSpec, Role, Scene, Shape};
 
@@ -17,6 +26,8 @@ pub const GRIPPER_ACTUATOR: &str = "r2g_gripper";
 /// A fixture's moving body is named `<fixture><MOVING_SUFFIX>`, its joint `<fixture><JOINT_SUFFIX>`.
 pub const MOVING_SUFFIX: &str = "__moving";
 pub const JOINT_SUFFIX: &str = "__joint";
+/// Extra package roots for `package://` mesh paths, searched before the defaults (`:`-separated).
+pub const PACKAGE_PATH_ENV: &str = "R2G_PACKAGE_PATH";
 /// Geom groups: drawn visuals and hidden collision shapes.
 const VISUAL_GROUP: u32 = 2;
 const COLLISION_GROUP: u32 = 3;
@@ -28,12 +39,61 @@ pub enum MjcfError {
     Urdf(String),
     #[error("URDF geometry of link '{link}' is not supported yet: {what}")]
     Unsupported { link: String, what: String },
+    #[error("URDF link '{link}': mesh '{file}': {detail} (package search path: {})", show_path(.search))]
+    Mesh { link: String, file: String, detail: String, search: Vec<PathBuf> },
     #[error("camera '{camera}' is mounted on link '{link}', which the robot does not have")]
     NoSuchLink { camera: String, link: String },
     #[error("URDF has no link without a parent (no root)")]
     NoRoot,
     #[error("camera '{camera}': look_at equals position, or up is parallel to the view direction")]
     BadCamera { camera: String },
+}
+
+fn show_path(p: &[PathBuf]) -> String {
+    if p.is_empty() {
+        return "empty".into();
+    }
+    p.iter().map(|d| d.display().to_string()).collect::<Vec<_>>().join(":")
+}
+
+/// Where `package://NAME/…` is looked up, in order: the folders of `$R2G_PACKAGE_PATH`, then the
+/// `packages/` folder of the URDF's own folder and of each folder above it (so `robots/packages/`,
+/// where `scripts/setup-venv.sh` unpacks the mesh wheels, serves every URDF under `robots/`).
+/// A root serves NAME when it holds a folder NAME.
+pub fn package_search_path(urdf: &Path) -> Vec<PathBuf> {
+    let mut roots: Vec<PathBuf> = std::env::var_os(PACKAGE_PATH_ENV)
+        .map(|v| std::env::split_paths(&v).filter(|p| !p.as_os_str().is_empty()).collect())
+        .unwrap_or_default();
+    let dir = urdf.parent().map(Path::to_path_buf).unwrap_or_default();
+    let dir = std::fs::canonicalize(&dir).unwrap_or(dir);
+    for a in dir.ancestors() {
+        let p = a.join("packages");
+        if p.is_dir() && !roots.contains(&p) {
+            roots.push(p);
+        }
+    }
+    roots
+}
+
+/// The file a URDF mesh filename names (it exists), or why not.
+fn resolve_mesh(filename: &str, urdf: &Path, search: &[PathBuf]) -> Result<PathBuf, String> {
+    let path = if let Some(rest) = filename.strip_prefix("package://") {
+        let (pkg, rel) =
+            rest.split_once('/').ok_or_else(|| "package:// names no file inside the package".to_string())?;
+        let Some(root) = search.iter().find(|r| r.join(pkg).is_dir()) else {
+            return Err(format!("no package '{pkg}' on the search path (set {PACKAGE_PATH_ENV}, or run scripts/setup-venv.sh for the shipped ones)"));
+        };
+        root.join(pkg).join(rel)
+    } else if let Some(abs) = filename.strip_prefix("file://") {
+        PathBuf::from(abs)
+    } else {
+        urdf.parent().unwrap_or(Path::new(".")).join(filename)
+    };
+    if path.is_file() {
+        Ok(path)
+    } else {
+        Err(format!("file {} does not exist", path.display()))
+    }
 }
 
 /// Gains of the joint servos for a joint of the given effort limit.
@@ -163,56 +223,143 @@ struct Writer<'a> {
     /// Arm joint ranges from the robot model: its profile's limits, not necessarily the URDF's.
     ranges: HashMap<String, (f64, f64)>,
     out: String,
+    /// The URDF file (relative mesh paths) and the package roots for `package://`.
+    urdf_path: PathBuf,
+    search: Vec<PathBuf>,
+    /// Mesh assets: (name, file, scale); `mesh_names` finds one already declared.
+    meshes: Vec<(String, PathBuf, [f64; 3])>,
+    mesh_names: HashMap<(PathBuf, String), String>,
+}
+
+/// One drawable piece of a URDF geometry: a primitive's MJCF type and size, or a mesh asset with
+/// the colour its file gives it (a converted DAE's material).
+enum Piece {
+    Primitive(&'static str, String),
+    Mesh(String, Option<[f64; 4]>),
 }
 
 impl Writer<'_> {
+    /// Declares (once per file and scale) the mesh assets a URDF mesh needs: one for STL/OBJ/MSH,
+    /// one per converted part for DAE.
+    fn mesh_pieces(&mut self, link: &str, filename: &str, scale: [f64; 3]) -> Result<Vec<Piece>, MjcfError> {
+        let err = |detail: String| MjcfError::Mesh {
+            link: link.into(),
+            file: filename.into(),
+            detail,
+            search: self.search.clone(),
+        };
+        let path = resolve_mesh(filename, &self.urdf_path, &self.search).map_err(err)?;
+        let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+        let files: Vec<(PathBuf, Option<[f64; 4]>)> = match ext.as_str() {
+            "stl" | "obj" | "msh" => vec![(path.clone(), None)],
+            "dae" => {
+                let dir = path
+                    .with_file_name(format!("{}.parts", path.file_name().and_then(|n| n.to_str()).unwrap_or_default()));
+                let list = dir.join("parts.txt");
+                let text = std::fs::read_to_string(&list).map_err(|_| {
+                    err(format!(
+                        "{} is COLLADA, which MuJoCo cannot read, and has no converted parts ({} is missing): run `.venv/bin/python robots/assets.py convert {}`",
+                        path.display(),
+                        list.display(),
+                        path.parent().unwrap_or(Path::new(".")).display()
+                    ))
+                })?;
+                let mut parts = Vec::new();
+                for line in text.lines().filter(|l| !l.trim().is_empty()) {
+                    let f: Vec<&str> = line.split_whitespace().collect();
+                    let rgba: Vec<f64> = f.iter().skip(1).filter_map(|v| v.parse().ok()).collect();
+                    if f.len() != 5 || rgba.len() != 4 || !dir.join(f[0]).is_file() {
+                        return Err(err(format!(
+                            "{}: bad line '{line}' (want FILE R G B A, FILE beside it)",
+                            list.display()
+                        )));
+                    }
+                    parts.push((dir.join(f[0]), Some([rgba[0], rgba[1], rgba[2], rgba[3]])));
+                }
+                if parts.is_empty() {
+                    return Err(err(format!("{} lists no parts", list.display())));
+                }
+                parts
+            }
+            _ => return Err(err(format!("{}: unknown mesh format '{ext}' (STL, OBJ, MSH or DAE)", path.display()))),
+        };
+        let mut pieces = Vec::new();
+        for (file, rgba) in files {
+            let key = (file.clone(), f3(scale));
+            let name = match self.mesh_names.get(&key) {
+                Some(n) => n.clone(),
+                None => {
+                    let n = format!("r2g_urdf_mesh{}", self.meshes.len());
+                    self.meshes.push((n.clone(), file, scale));
+                    self.mesh_names.insert(key, n.clone());
+                    n
+                }
+            };
+            pieces.push(Piece::Mesh(name, rgba));
+        }
+        Ok(pieces)
+    }
+
+    fn pieces(&mut self, link: &str, g: &urdf_rs::Geometry) -> Result<Vec<Piece>, MjcfError> {
+        Ok(vec![match g {
+            urdf_rs::Geometry::Box { size } => {
+                Piece::Primitive("box", f3([size.0[0] / 2.0, size.0[1] / 2.0, size.0[2] / 2.0]))
+            }
+            urdf_rs::Geometry::Cylinder { radius, length } => {
+                Piece::Primitive("cylinder", format!("{radius} {}", length / 2.0))
+            }
+            urdf_rs::Geometry::Capsule { radius, length } => {
+                Piece::Primitive("capsule", format!("{radius} {}", length / 2.0))
+            }
+            urdf_rs::Geometry::Sphere { radius } => Piece::Primitive("sphere", format!("{radius}")),
+            urdf_rs::Geometry::Mesh { filename, scale } => {
+                let scale = scale.as_ref().map(v3).unwrap_or([1.0; 3]);
+                return self.mesh_pieces(link, filename, scale);
+            }
+        }])
+    }
+
     fn geoms(&mut self, link: &urdf_rs::Link, indent: &str) -> Result<(), MjcfError> {
-        let shape = |g: &urdf_rs::Geometry| -> Result<(String, String), MjcfError> {
-            Ok(match g {
-                urdf_rs::Geometry::Box { size } => {
-                    ("box".into(), f3([size.0[0] / 2.0, size.0[1] / 2.0, size.0[2] / 2.0]))
-                }
-                urdf_rs::Geometry::Cylinder { radius, length } => {
-                    ("cylinder".into(), format!("{radius} {}", length / 2.0))
-                }
-                urdf_rs::Geometry::Capsule { radius, length } => {
-                    ("capsule".into(), format!("{radius} {}", length / 2.0))
-                }
-                urdf_rs::Geometry::Sphere { radius } => ("sphere".into(), format!("{radius}")),
-                urdf_rs::Geometry::Mesh { filename, .. } => {
-                    return Err(MjcfError::Unsupported { link: link.name.clone(), what: format!("mesh {filename}") })
-                }
-            })
+        let shape = |p: &Piece| match p {
+            Piece::Primitive(t, size) => format!("type=\"{t}\" size=\"{size}\""),
+            Piece::Mesh(name, _) => format!("type=\"mesh\" mesh=\"{name}\""),
         };
         for v in &link.visual {
-            let (t, size) = shape(&v.geometry)?;
-            let rgba = v
+            let urdf_rgba = v
                 .material
                 .as_ref()
-                .and_then(|m| m.color.as_ref().map(|c| c.rgba.0).or_else(|| self.materials.get(&m.name).copied()))
-                .unwrap_or([0.8, 0.8, 0.8, 1.0]);
-            writeln!(
-                self.out,
-                "{indent}<geom type=\"{t}\" size=\"{size}\" pos=\"{}\" euler=\"{}\" rgba=\"{} {} {} {}\" contype=\"0\" conaffinity=\"0\" group=\"2\" mass=\"0\"/>",
-                f3(v3(&v.origin.xyz)),
-                f3(v3(&v.origin.rpy)),
-                rgba[0], rgba[1], rgba[2], rgba[3]
-            )
-            .ok();
+                .and_then(|m| m.color.as_ref().map(|c| c.rgba.0).or_else(|| self.materials.get(&m.name).copied()));
+            for p in self.pieces(&link.name, &v.geometry)? {
+                // A URDF colour wins; else a converted part's own; else light grey.
+                let own = if let Piece::Mesh(_, c) = &p { *c } else { None };
+                let rgba = urdf_rgba.or(own).unwrap_or([0.8, 0.8, 0.8, 1.0]);
+                writeln!(
+                    self.out,
+                    "{indent}<geom {} pos=\"{}\" euler=\"{}\" rgba=\"{} {} {} {}\" contype=\"0\" conaffinity=\"0\" group=\"2\" mass=\"0\"/>",
+                    shape(&p),
+                    f3(v3(&v.origin.xyz)),
+                    f3(v3(&v.origin.rpy)),
+                    rgba[0], rgba[1], rgba[2], rgba[3]
+                )
+                .ok();
+            }
         }
         // Collision shapes named `*_envelope` wrap parts the simulator models in detail (the
         // fingers): they serve the runtime's self-collision checks only and never touch objects.
         for c in link.collision.iter().filter(|c| !c.name.as_deref().is_some_and(|n| n.ends_with("_envelope"))) {
-            let (t, size) = shape(&c.geometry)?;
             // Robot geoms collide with the scene (conaffinity 1) but not with each other: the
             // runtime checks self-collision on commands before they ever reach the simulator.
-            writeln!(
-                self.out,
-                "{indent}<geom type=\"{t}\" size=\"{size}\" pos=\"{}\" euler=\"{}\" contype=\"2\" conaffinity=\"1\" group=\"3\" friction=\"1.2 0.01 0.0002\" mass=\"0\" rgba=\"0.5 0.5 0.9 0.4\"/>",
-                f3(v3(&c.origin.xyz)),
-                f3(v3(&c.origin.rpy))
-            )
-            .ok();
+            // A mesh collides as its convex hull.
+            for p in self.pieces(&link.name, &c.geometry)? {
+                writeln!(
+                    self.out,
+                    "{indent}<geom {} pos=\"{}\" euler=\"{}\" contype=\"2\" conaffinity=\"1\" group=\"3\" friction=\"1.2 0.01 0.0002\" mass=\"0\" rgba=\"0.5 0.5 0.9 0.4\"/>",
+                    shape(&p),
+                    f3(v3(&c.origin.xyz)),
+                    f3(v3(&c.origin.rpy))
+                )
+                .ok();
+            }
         }
         Ok(())
     }
@@ -340,6 +487,10 @@ pub fn compile(scene: &Scene, urdf_xml: &str, model: &controllers::RobotModel) -
             .zip(model.joints.iter().map(|l| (l.q_min_rad, l.q_max_rad)))
             .collect(),
         out: String::new(),
+        urdf_path: scene.robot.urdf.clone(),
+        search: package_search_path(&scene.robot.urdf),
+        meshes: Vec::new(),
+        mesh_names: HashMap::new(),
     };
     let max_w = scene.cameras.iter().map(|c| c.width).max().unwrap_or(640);
     let max_h = scene.cameras.iter().map(|c| c.height).max().unwrap_or(480);
@@ -494,6 +645,7 @@ pub fn compile(scene: &Scene, urdf_xml: &str, model: &controllers::RobotModel) -
         "    <position name=\"{GRIPPER_ACTUATOR}\" tendon=\"r2g_fingers\" kp=\"2000\" kv=\"40\" ctrlrange=\"0 {finger_max}\" forcerange=\"-70 70\"/>\n  </actuator>\n</mujoco>"
     )
     .ok();
+    meshes.append(&mut w.meshes);
     let assets: String = meshes
         .iter()
         .map(|(name, file, scale)| {

@@ -20,12 +20,19 @@ pub enum SimError {
     Scene(#[from] crate::scene::SceneError),
     #[error("robot model: {0}")]
     Robot(#[from] controllers::Error),
+    // Not a `source`: the message already holds it, and a chain printed with `{:#}` would say it twice.
     #[error("scene to MJCF: {0}")]
-    Mjcf(#[from] mjcf::MjcfError),
+    Mjcf(mjcf::MjcfError),
     #[error("MuJoCo refused the compiled model: {0}")]
     Compile(String),
     #[error("compiled model lacks {0}")]
     Missing(String),
+}
+
+impl From<mjcf::MjcfError> for SimError {
+    fn from(e: mjcf::MjcfError) -> Self {
+        Self::Mjcf(e)
+    }
 }
 
 /// Indices into the compiled model, resolved once.
