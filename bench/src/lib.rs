@@ -4,6 +4,7 @@ pub mod accept;
 pub mod agent;
 pub mod all;
 pub mod control;
+pub mod fci;
 pub mod ik;
 pub mod ipc;
 pub mod perception;

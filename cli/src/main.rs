@@ -318,6 +318,14 @@ enum BenchCmd {
         #[arg(long)]
         only: Option<String>,
     },
+    /// A 5 s joint move through `robo` on sim-host and on r2g-fci against franka-sim (the
+    /// Franka network protocol on 127.0.0.1), in one run: final error, the runtime's wake and
+    /// tick-to-command latency, and the FCI cycle (packets lost, reply latency vs the budget).
+    Fci {
+        /// Run franka-sim without its motion-limit check (on by default, as on a real arm).
+        #[arg(long)]
+        lenient_peer: bool,
+    },
     /// Cost of one controller tick (interpolation, limiter, checks) following valid chunks,
     /// with allocations inside ticks counted, beside FK + Jacobian alone.
     TickCompute {
@@ -451,6 +459,7 @@ fn main() {
         Cmd::Bench { which: BenchCmd::Accept { seconds, only } } => {
             bench::accept::run(seconds, only.as_deref()).map(|_| 0)
         }
+        Cmd::Bench { which: BenchCmd::Fci { lenient_peer } } => bench::fci::run(lenient_peer).map(|_| 0),
         Cmd::Bench { which: BenchCmd::LimiterFuzz { chunks, seed } } => {
             bench::control::limiter_fuzz(chunks, seed).map(|v| if v["violations"] == 0 { 0 } else { 1 })
         }

@@ -105,7 +105,7 @@ pub fn resolve_scene(gym: &str) -> anyhow::Result<PathBuf> {
     )
 }
 
-fn sibling(name: &str) -> anyhow::Result<PathBuf> {
+pub fn sibling(name: &str) -> anyhow::Result<PathBuf> {
     let exe = std::env::current_exe().context("locating this executable")?;
     let dir = exe.parent().context("executable has no folder")?;
     // Test binaries live one level deeper (target/<profile>/deps).

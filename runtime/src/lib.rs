@@ -525,28 +525,32 @@ fn wall_loop(
             stats.robot_losses += 1;
             robot_seen_again = false;
         }
-        let (mut cmd, mut reply) = ctl.tick(&latest);
+        // Every command is checked against the limits, each against the one a tick before (not
+        // on a tick whose command restarted at the measured state: a reset, a robot side that
+        // came back or recovered).
+        let mut checked_tick = |ctl: &mut Controller, stats: &mut TickStats| {
+            let (cmd, reply) = ctl.tick(&latest);
+            if let (Some(p), false) = (prev_cmd, ctl.take_restarted()) {
+                if !ctl.within_limits(&p, &cmd) {
+                    stats.limit_violations += 1;
+                }
+            }
+            prev_cmd = Some(cmd);
+            (cmd, reply)
+        };
+        let (mut cmd, mut reply) = checked_tick(ctl, &mut stats);
         if paced && fresh {
-            // A robot cycle without a state (a lost packet) still moved the robot's own
-            // interpolation on: the command covers every cycle since the last state.
+            // A robot cycle without a state (a lost packet, or one this loop was too late to
+            // read) still moved the robot's own interpolation on: the command covers every
+            // cycle since the last state.
             let cycles = ((latest.sim_time_s - prev_robot_time_s) / (period as f64 * 1e-9)).round();
             for _ in 1..(cycles.clamp(1.0, 4.0) as u32) {
-                (cmd, reply) = {
-                    let (c, r) = ctl.tick(&latest);
-                    (c, reply.or(r))
-                };
+                let (c, r) = checked_tick(ctl, &mut stats);
+                (cmd, reply) = (c, reply.or(r));
             }
             prev_robot_time_s = latest.sim_time_s;
         }
         let reply = back.or(reply);
-        // Every command is checked against the limits (not on a tick whose command restarted
-        // at the measured state: a reset or a robot side that came back).
-        if let (Some(p), false) = (prev_cmd, ctl.take_restarted()) {
-            if !ctl.within_limits(&p, &cmd) {
-                stats.limit_violations += 1;
-            }
-        }
-        prev_cmd = Some(cmd);
         // While the robot side is lost its command goes out after the tick (below): a robot side
         // that reappears is registered by those sends or the next tick's connection update,
         // never inside a tick.
