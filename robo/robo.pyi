@@ -76,6 +76,42 @@ class EffectiveSafety(TypedDict):
     operator_force_n: Optional[float]
     """Franka: force above which the arm faults until a person clears it; None in simulation."""
 
+class TcpCalibration(TypedDict):
+    """The TCP the runtime uses for ee_pose and ee_pose targets."""
+
+    source: str
+    """"file: PATH" (a measured flange-to-TCP file named in config/robot.json) or "description"
+    (the robot description's TCP)."""
+    flange_from_tcp: list[list[float]]
+    """4x4 row-major transform in use, m: TCP frame -> flange frame."""
+
+class CameraCalibration(TypedDict, total=False):
+    """One camera: always "source"; "reason" when missing; the file's values when from a file."""
+
+    source: str
+    """"file: PATH", "missing" (named in config/robot.json but unreadable or invalid: nothing is
+    made up for it), or "scene" (no file; its frames carry the simulator's calibration)."""
+    reason: str
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: Optional[list[float]]
+    """k1, k2, p1, p2, k3 (OpenCV order), or None."""
+    base_from_camera: list[list[float]]
+    """Fixed camera: 4x4, camera optical frame -> base frame."""
+    flange_from_camera: list[list[float]]
+    """Camera on the hand: 4x4, camera optical frame -> flange frame."""
+
+class Calibration(TypedDict):
+    """Where the TCP and each camera's calibration come from (empty until the runtime has
+    published its limits)."""
+
+    tcp: TcpCalibration
+    cameras: dict[str, CameraCalibration]
+
 class _StateBase(TypedDict):
     joint: list[float]
     """7 measured joint positions, rad."""
@@ -105,6 +141,9 @@ class _StateBase(TypedDict):
     camera's matrix follows the arm."""
     control_feedback: ControlFeedback
     effective_safety: EffectiveSafety
+    calibration: Calibration
+    """Sources of the TCP and camera calibrations; a camera named in config/robot.json whose
+    file is missing or invalid reads {"source": "missing", "reason": ...}."""
 
 class State(_StateBase):
     """get_state() with raw=False."""

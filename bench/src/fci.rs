@@ -86,8 +86,8 @@ impl Drop for Peer {
 }
 
 fn tail(p: &Path) -> String {
-    let t = std::fs::read_to_string(p).unwrap_or_default();
-    t[t.len().saturating_sub(1500)..].to_string()
+    let t = std::fs::read(p).unwrap_or_default();
+    String::from_utf8_lossy(&t[t.len().saturating_sub(1500)..]).into_owned()
 }
 
 fn read_json(p: &Path) -> anyhow::Result<Value> {

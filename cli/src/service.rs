@@ -4,20 +4,25 @@
 //! value first, and writes all or nothing.
 
 use std::collections::BTreeMap;
+use std::net::{Ipv4Addr, SocketAddrV4};
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use clap::Subcommand;
-use runtime::launch;
+use runtime::launch::{self, RobotSide};
 
 const CONTROL_UNIT: &str = include_str!("../../deploy/systemd/r2g-control@.service");
 const SIM_UNIT: &str = include_str!("../../deploy/systemd/r2g-sim@.service");
+const FCI_UNIT: &str = include_str!("../../deploy/systemd/r2g-fci@.service");
 const AGENT_UNIT: &str = include_str!("../../deploy/systemd/r2g-agent@.service");
 const TARGET_UNIT: &str = include_str!("../../deploy/systemd/r2g@.target");
 const SYSUSERS: &str = include_str!("../../deploy/sysusers.d/r2g.conf");
 const TMPFILES: &str = include_str!("../../deploy/tmpfiles.d/r2g@.conf");
 const ICEORYX2: &str = include_str!("../../deploy/iceoryx2/instance.toml");
 const ICEORYX2_AGENT: &str = include_str!("../../deploy/iceoryx2/agent.toml");
+
+/// The programs that can be an instance's robot side, each with a unit template `<program>@.service`.
+const ROBOT_SIDES: [&str; 2] = ["r2g-sim", "r2g-fci"];
 
 /// Keys of `--config` (a flat TOML file), with what each accepts.
 const KEYS: &[(&str, &str)] = &[
@@ -28,6 +33,8 @@ const KEYS: &[(&str, &str)] = &[
     ("trace", "record and judge every episode under /var/lib/r2g/<instance>/traces, true or false"),
     ("agent_llm", "the agent batch's LLM: \"scripted\", \"scripted:<conversation.json>\" or an endpoint TOML file"),
     ("agent_episodes", "episodes of the agent batch, an integer 1..=100000"),
+    ("fci", "a real Franka arm's FCI address, driven by r2g-fci instead of the simulator: an IPv4 address with an optional port, such as \"172.16.0.2\" (\"\": the simulator)"),
+    ("fci_gripper", "also drive the arm's Franka Hand (with fci), true or false"),
 ];
 
 #[derive(Subcommand, Debug)]
@@ -57,9 +64,19 @@ pub enum ServiceCmd {
         /// model, the table and the workspace.
         #[arg(long)]
         gym: Option<String>,
-        /// Folder holding r2g, r2g-control and r2g-sim (default: the folder of this r2g).
+        /// Folder holding r2g, r2g-control and r2g-sim, and r2g-fci with --fci (default: the
+        /// folder of this r2g).
         #[arg(long)]
         bin_dir: Option<PathBuf>,
+        /// Drive a real Franka arm at this FCI address (an IPv4 address, optionally with a port)
+        /// instead of the simulator: r2g-fci@<instance> becomes the robot side, allowed to reach
+        /// that address only. Needs a robot config with "profile": "franka" (then --gym).
+        /// Overrides `fci` of --config.
+        #[arg(long)]
+        fci: Option<String>,
+        /// Also drive the Franka Hand of that arm (with --fci).
+        #[arg(long, requires = "fci")]
+        fci_gripper: bool,
     },
     /// Tick health of a running instance, asked from its control process over the operator
     /// socket, and the states of its units when systemd runs here. Exit status 0 only when the
@@ -75,8 +92,18 @@ pub enum ServiceCmd {
 
 pub fn run(cmd: ServiceCmd) -> anyhow::Result<i32> {
     match cmd {
-        ServiceCmd::Install { gym_or_robot_config, instance, cpu, root, config, gym, bin_dir } => {
-            let args = InstallArgs { target: gym_or_robot_config, instance, cpu, root, config, gym, bin_dir };
+        ServiceCmd::Install { gym_or_robot_config, instance, cpu, root, config, gym, bin_dir, fci, fci_gripper } => {
+            let args = InstallArgs {
+                target: gym_or_robot_config,
+                instance,
+                cpu,
+                root,
+                config,
+                gym,
+                bin_dir,
+                fci,
+                fci_gripper,
+            };
             let plan = plan(&args)?;
             write_all(&args.root, &plan)?;
             report(&args.root, &plan);
@@ -94,6 +121,8 @@ struct InstallArgs {
     config: Option<PathBuf>,
     gym: Option<String>,
     bin_dir: Option<PathBuf>,
+    fci: Option<String>,
+    fci_gripper: bool,
 }
 
 /// The values of one instance, checked.
@@ -106,12 +135,17 @@ struct Settings {
     trace: bool,
     agent_llm: String,
     agent_episodes: i64,
+    /// The arm's FCI address (checked by [`fci_ip`]); None: the simulator.
+    fci: Option<String>,
+    fci_gripper: bool,
 }
 
-/// What `install` writes: paths relative to the root, contents, and notes for the person.
+/// What `install` writes and removes (paths relative to the root), and notes for the person.
 struct Plan {
     instance: String,
     files: Vec<(PathBuf, String)>,
+    /// Files of an earlier install that no longer apply, removed once every file is in place.
+    stale: Vec<PathBuf>,
     notes: Vec<String>,
 }
 
@@ -293,17 +327,37 @@ fn settings(args: &InstallArgs) -> anyhow::Result<Settings> {
         }
         Some(v) => bail!("{} is {}: {}", origin("render_hz"), v.kind(), what("render_hz")),
     };
-    let trace = match cfg.get("trace") {
-        None => true,
-        Some(Value::Bool(b)) => *b,
-        Some(v) => bail!("{} is {}: {}", origin("trace"), v.kind(), what("trace")),
+    let boolean = |key: &str, default: bool| -> anyhow::Result<bool> {
+        match cfg.get(key) {
+            None => Ok(default),
+            Some(Value::Bool(b)) => Ok(*b),
+            Some(v) => bail!("{} is {}: {}", origin(key), v.kind(), what(key)),
+        }
     };
+    let trace = boolean("trace", true)?;
     let agent_llm = match cfg.get("agent_llm") {
         None => "scripted".to_string(),
         Some(Value::Str(s)) => s.clone(),
         Some(v) => bail!("{} is {}: {}", origin("agent_llm"), v.kind(), what("agent_llm")),
     };
     let agent_episodes = int("agent_episodes", 1, 100_000, 10)?;
+    let fci = match (&args.fci, cfg.get("fci")) {
+        (Some(a), _) => {
+            fci_ip(&format!("--fci {a:?}"), a)?;
+            Some(a.clone())
+        }
+        (None, Some(Value::Str(a))) if a.is_empty() => None,
+        (None, Some(Value::Str(a))) => {
+            fci_ip(&format!("{} = {a:?}", origin("fci")), a)?;
+            Some(a.clone())
+        }
+        (None, Some(v)) => bail!("{} is {}: {}", origin("fci"), v.kind(), what("fci")),
+        (None, None) => None,
+    };
+    let fci_gripper = args.fci_gripper || boolean("fci_gripper", false)?;
+    if fci_gripper && fci.is_none() {
+        bail!("{} = true needs fci, the arm's address: {}", origin("fci_gripper"), what("fci"));
+    }
     if housekeeping_cpus.contains(&cpu) {
         bail!(
             "{} holds CPU {cpu}, the control loop's own CPU: give the other CPUs ({})",
@@ -311,7 +365,31 @@ fn settings(args: &InstallArgs) -> anyhow::Result<Settings> {
             what("housekeeping_cpus")
         );
     }
-    Ok(Settings { cpu, fifo_priority, housekeeping_cpus, render_hz, trace, agent_llm, agent_episodes })
+    Ok(Settings {
+        cpu,
+        fifo_priority,
+        housekeeping_cpus,
+        render_hz,
+        trace,
+        agent_llm,
+        agent_episodes,
+        fci,
+        fci_gripper,
+    })
+}
+
+/// The IPv4 address in `address` (`a.b.c.d` or `a.b.c.d:port`). The fci unit allows packets to
+/// and from exactly that address (IPAddressAllow= takes no host names) and resolves no names.
+fn fci_ip(origin: &str, address: &str) -> anyhow::Result<Ipv4Addr> {
+    match address.parse::<SocketAddrV4>() {
+        Ok(a) => Ok(*a.ip()),
+        Err(_) => address.parse::<Ipv4Addr>().map_err(|_| {
+            anyhow::anyhow!(
+                "{origin}: the arm's FCI address must be an IPv4 address, optionally with a port (such as 172.16.0.2 \
+                 or 172.16.0.2:1337), not a host name: r2g-fci@ may exchange packets with that address only"
+            )
+        }),
+    }
 }
 
 fn show(v: &Value) -> String {
@@ -364,6 +442,42 @@ fn is_executable(p: &Path) -> bool {
     std::fs::metadata(p).is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
 }
 
+/// The calibration files the robot config names, copied beside the instance's robot.json (the
+/// units cannot read the user's folders) as `calibration/tcp.json` and
+/// `calibration/camera-NAME.json`, and the robot.json that names those copies. A missing or
+/// unreadable TCP file is refused (r2g-control would refuse to start); a camera's is left out
+/// with a note (the runtime reports it missing).
+fn instance_calibration(
+    robot_config: &Path,
+    text: &str,
+    notes: &mut Vec<String>,
+) -> anyhow::Result<(String, Vec<(String, String)>)> {
+    let files = runtime::RobotConfig::load(robot_config)?.calibration;
+    if files.tcp.is_none() && files.cameras.is_empty() {
+        return Ok((text.to_string(), Vec::new()));
+    }
+    let mut json: serde_json::Value = serde_json::from_str(text)?;
+    let mut copies = Vec::new();
+    if let Some(tcp) = &files.tcp {
+        let body = std::fs::read_to_string(tcp)
+            .with_context(|| format!("robot config {}: calibration.tcp {}", robot_config.display(), tcp.display()))?;
+        copies.push(("calibration/tcp.json".to_string(), body));
+        json["calibration"]["tcp"] = "calibration/tcp.json".into();
+    }
+    for (cam, path) in &files.cameras {
+        let copy = format!("calibration/camera-{cam}.json");
+        match std::fs::read_to_string(path) {
+            Ok(body) => copies.push((copy.clone(), body)),
+            Err(e) => notes.push(format!(
+                "calibration of camera {cam}: {} ({e}); the instance reports it missing",
+                path.display()
+            )),
+        }
+        json["calibration"]["cameras"][cam.as_str()] = copy.into();
+    }
+    Ok((serde_json::to_string_pretty(&json)? + "\n", copies))
+}
+
 /// Everything `install` would write, after checking every input; writes nothing.
 fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
     let name = args.instance.as_str();
@@ -393,8 +507,34 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
     let robot_json = std::fs::read_to_string(&robot_config)
         .with_context(|| format!("robot config {}: cannot read it", robot_config.display()))?;
     runtime::RobotConfig::parse(&robot_json).with_context(|| format!("robot config {}", robot_config.display()))?;
+    let (robot_json, calibration) = instance_calibration(&robot_config, &robot_json, &mut notes)?;
 
-    // The binaries the units run.
+    // The robot side, refused where `r2g up` would refuse it (the control unit runs in wall mode).
+    let side = match &s.fci {
+        Some(address) => RobotSide::Fci {
+            address: address.clone(),
+            extra: if s.fci_gripper { vec!["--gripper".into()] } else { vec![] },
+        },
+        None => RobotSide::Sim,
+    };
+    side.check(ipc_schema::Mode::Wall, Some(&robot_config)).with_context(|| {
+        format!(
+            "r2g-fci for the arm at {}: give a robot config with \"profile\": \"franka\" as the first argument and the \
+             gym with --gym",
+            s.fci.as_deref().unwrap_or_default()
+        )
+    })?;
+
+    if matches!(side, RobotSide::Fci { .. })
+        && std::fs::read_to_string("/sys/kernel/realtime").map_or(true, |v| v.trim() != "1")
+    {
+        notes.push(format!(
+            "this kernel has no real-time support (/sys/kernel/realtime is not 1): r2g-fci@{name} runs with \
+             --realtime and refuses to start on it; boot a PREEMPT_RT kernel (deploy/README.md)"
+        ));
+    }
+
+    // The binaries the units run (r2g-sim in any case: the agent unit's batches start simulated gyms).
     let bin_dir = match &args.bin_dir {
         Some(d) => absolute(d).with_context(|| format!("--bin-dir {}", d.display()))?,
         None => {
@@ -402,7 +542,7 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
             absolute(exe.parent().context("r2g has no folder")?)?
         }
     };
-    for b in ["r2g", "r2g-control", "r2g-sim"] {
+    for b in ["r2g", "r2g-control", "r2g-sim", side.program()] {
         if !is_executable(&bin_dir.join(b)) {
             bail!(
                 "{} has no executable {b}: build the workspace (cargo build --release) or pass --bin-dir with the \
@@ -462,6 +602,7 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
         ("r2g@.target", TARGET_UNIT),
         ("r2g-control@.service", CONTROL_UNIT),
         ("r2g-sim@.service", SIM_UNIT),
+        ("r2g-fci@.service", FCI_UNIT),
         ("r2g-agent@.service", AGENT_UNIT),
     ];
     for (file, text) in templates {
@@ -474,11 +615,14 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
         files.push((rel, text.to_string()));
     }
 
-    // Per-instance drop-ins.
+    // Per-instance drop-ins. The target and the control unit want the instance's robot side: a
+    // drop-in can add a dependency, never remove one, so the templates name none.
     let header = format!(
         "# Written by `r2g service install` for instance {name}; the values are in {etc}/instance.toml.\n\
-         # Install again (with --config {etc}/instance.toml) rather than editing this file.\n[Service]\n"
+         # Install again (with --config {etc}/instance.toml) rather than editing this file.\n"
     );
+    let robot_side = format!("{}@%i.service", side.program());
+    let wants_side = format!("[Unit]\nWants={robot_side}\nAfter={robot_side}\n");
     let checkout = format!(
         "Environment=R2G_GYMS={gyms} R2G_ROBOTS={robots} R2G_SKILL={skill}\nEnvironment=\"R2G_BIN_DIR={bin}\"\n"
     );
@@ -489,26 +633,57 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
     control_cpus.push(s.cpu);
     control_cpus.sort_unstable();
     let control = format!(
-        "{header}Environment=R2G_SCENE={scene}\nEnvironment=R2G_CPU={} R2G_FIFO_PRIORITY={}\n{checkout}\
-         CPUAffinity={}\nLimitRTPRIO={}\n",
+        "{header}{wants_side}[Service]\nEnvironment=R2G_SCENE={scene}\nEnvironment=R2G_CPU={} R2G_FIFO_PRIORITY={}\n\
+         {checkout}CPUAffinity={}\nLimitRTPRIO={}\n",
         s.cpu,
         s.fifo_priority,
         show_cpus(&control_cpus).replace(',', " "),
         s.fifo_priority
     );
-    let sim_args = if s.trace { format!("--trace-dir /var/lib/r2g/{name}/traces") } else { String::new() };
-    let sim = format!(
-        "{header}Environment=R2G_SCENE={scene}\nEnvironment=R2G_RENDER_HZ={}\nEnvironment=\"R2G_SIM_ARGS={sim_args}\"\n\
-         {checkout}CPUAffinity={others}\n",
-        s.render_hz
-    );
+    let robot = match &side {
+        RobotSide::Sim => {
+            let sim_args = if s.trace { format!("--trace-dir /var/lib/r2g/{name}/traces") } else { String::new() };
+            format!(
+                "{header}[Service]\nEnvironment=R2G_SCENE={scene}\nEnvironment=R2G_RENDER_HZ={}\n\
+                 Environment=\"R2G_SIM_ARGS={sim_args}\"\n{checkout}CPUAffinity={others}\n",
+                s.render_hz
+            )
+        }
+        // The one address the unit may exchange packets with (its IPAddressDeny=any drops the rest).
+        RobotSide::Fci { address, extra } => format!(
+            "{header}[Service]\nEnvironment=R2G_SCENE={scene}\nEnvironment=R2G_FCI_ADDRESS={address}\n\
+             Environment=\"R2G_FCI_ARGS={}\"\n{checkout}CPUAffinity={others}\nIPAddressAllow={}\n",
+            extra.join(" "),
+            fci_ip("fci", address)?
+        ),
+    };
     let agent = format!(
-        "{header}Environment=R2G_SCENE={scene}\nEnvironment=R2G_AGENT_LLM={agent_llm} R2G_AGENT_EPISODES={}\n\
+        "{header}[Service]\nEnvironment=R2G_SCENE={scene}\nEnvironment=R2G_AGENT_LLM={agent_llm} R2G_AGENT_EPISODES={}\n\
          {checkout}CPUAffinity={others}\n",
         s.agent_episodes
     );
-    for (unit, text) in [("r2g-control", control), ("r2g-sim", sim), ("r2g-agent", agent)] {
-        files.push((PathBuf::from(format!("etc/systemd/system/{unit}@{name}.service.d/10-r2g.conf")), text));
+    let drop_ins = [
+        (format!("r2g@{name}.target"), format!("{header}{wants_side}")),
+        (format!("r2g-control@{name}.service"), control),
+        (format!("{}@{name}.service", side.program()), robot),
+        (format!("r2g-agent@{name}.service"), agent),
+    ];
+    for (unit, text) in drop_ins {
+        files.push((PathBuf::from(format!("etc/systemd/system/{unit}.d/10-r2g.conf")), text));
+    }
+    // The other robot side's drop-in from an earlier install goes: without it that unit has no
+    // scene and no binaries, so it cannot be started beside this one by mistake.
+    let mut stale = Vec::new();
+    for other in ROBOT_SIDES.iter().filter(|p| **p != side.program()) {
+        let rel = PathBuf::from(format!("etc/systemd/system/{other}@{name}.service.d/10-r2g.conf"));
+        if args.root.join(&rel).exists() {
+            notes.push(format!(
+                "instance {name}'s robot side is now {}@{name}: removing {} (stop {other}@{name}.service if it runs)",
+                side.program(),
+                rel.display()
+            ));
+            stale.push(rel);
+        }
     }
 
     // The instance's own files: the iceoryx2 configurations of the control instance and of the
@@ -519,6 +694,9 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
         ICEORYX2_AGENT.replace("@INSTANCE@", name),
     ));
     files.push((PathBuf::from(format!("etc/r2g/{name}/robot.json")), robot_json));
+    for (file, text) in calibration {
+        files.push((PathBuf::from(format!("etc/r2g/{name}/{file}")), text));
+    }
     let instance_toml = format!(
         "# r2g instance {name}, written by `r2g service install` (r2g {}).\n\
          # gym: {scene}\n\
@@ -531,7 +709,9 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
          render_hz = {:?}\n\
          trace = {}\n\
          agent_llm = {:?}\n\
-         agent_episodes = {}\n",
+         agent_episodes = {}\n\
+         fci = {:?}\n\
+         fci_gripper = {}\n",
         env!("CARGO_PKG_VERSION"),
         absolute(&robot_config)?.display(),
         if is_robot_config { format!("{} --gym {gym}", args.target) } else { gym.clone() },
@@ -542,6 +722,8 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
         s.trace,
         s.agent_llm,
         s.agent_episodes,
+        s.fci.as_deref().unwrap_or_default(),
+        s.fci_gripper,
     );
     files.push((PathBuf::from(format!("etc/r2g/{name}/instance.toml")), instance_toml));
     files.push((PathBuf::from(format!("etc/tmpfiles.d/r2g-{name}.conf")), TMPFILES.replace("@INSTANCE@", name)));
@@ -560,7 +742,7 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
             );
         }
     }
-    Ok(Plan { instance: name.to_string(), files, notes })
+    Ok(Plan { instance: name.to_string(), files, stale, notes })
 }
 
 /// Whether /etc/group (its text) lists user r2g-agent as a member of group r2g.
@@ -599,6 +781,14 @@ fn write_all(root: &Path, plan: &Plan) -> anyhow::Result<()> {
     for (tmp, path) in &temps {
         std::fs::rename(tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
     }
+    for rel in &plan.stale {
+        let path = root.join(rel);
+        std::fs::remove_file(&path).with_context(|| format!("removing {}", path.display()))?;
+        // Its folder too, when nothing else is left in it.
+        if let Some(dir) = path.parent() {
+            let _ = std::fs::remove_dir(dir);
+        }
+    }
     Ok(())
 }
 
@@ -606,6 +796,9 @@ fn report(root: &Path, plan: &Plan) {
     let name = &plan.instance;
     for (rel, _) in &plan.files {
         println!("wrote {}", root.join(rel).display());
+    }
+    for rel in &plan.stale {
+        println!("removed {}", root.join(rel).display());
     }
     for n in &plan.notes {
         eprintln!("r2g service install: {n}");
@@ -679,10 +872,15 @@ fn units(instance: &str) {
         println!("systemd is not running here (PID 1 is {}): no unit states", init.trim());
         return;
     }
+    // The robot side is the one the instance's install wrote a drop-in for.
+    let side = ROBOT_SIDES
+        .into_iter()
+        .find(|p| Path::new(&format!("/etc/systemd/system/{p}@{instance}.service.d")).is_dir())
+        .unwrap_or(ROBOT_SIDES[0]);
     for unit in [
         format!("r2g@{instance}.target"),
         format!("r2g-control@{instance}.service"),
-        format!("r2g-sim@{instance}.service"),
+        format!("{side}@{instance}.service"),
         format!("r2g-agent@{instance}.service"),
     ] {
         let state = std::process::Command::new("systemctl")

@@ -14,6 +14,7 @@
 
 use std::collections::HashMap;
 use std::fmt;
+use std::path::{Path, PathBuf};
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use parry3d::math::{Pose, Rot3, Vector};
@@ -21,6 +22,7 @@ use parry3d::query::{self, PointQuery};
 use parry3d::shape::{Cuboid, HalfSpace, Segment, Shape};
 
 use crate::kinematics::FrameId;
+use crate::mesh;
 use crate::robot::RobotModel;
 use crate::{Kinematics, N};
 
@@ -50,14 +52,22 @@ pub const MOUNT_JOINTS: usize = 1;
 /// link5 - so they stay checked. Franka's own tools likewise skip a link's direct neighbours.
 pub const MIN_JOINTS_APART: usize = 2;
 
-/// Pairs (by link name) not checked although they are [`MIN_JOINTS_APART`] apart.
+/// Pairs (by link name in robots/panda/*.urdf) not checked although they are
+/// [`MIN_JOINTS_APART`] apart. The model applies the rule by position in the chain,
+/// [`EXCLUDED_JOINT_PAIRS`], so that a description naming its links otherwise (`panda_link1`)
+/// gets the same pairs.
 ///
 /// link1/link3: link3's capsule lies on joint 3's axis, so the gap between the two depends on
 /// joint 2 alone, and the capsules touch once |q2| passes about 1.3 rad - about a quarter of the
 /// range the real arm is built to reach without hitting itself. The contact comes from the
 /// capsules being wider than the real shoulder, so checking it would forbid much of the
-/// workspace for nothing.
+/// workspace for nothing. Capsules bounding the real meshes are wider still (see
+/// [`mesh::bounding_capsule`]), so the same holds for them.
 pub const EXCLUDED_PAIRS: [(&str, &str); 1] = [("link1", "link3")];
+
+/// [`EXCLUDED_PAIRS`] by the number of joints that move each body: the body turned by joint 1
+/// alone (link1) and the one joints 1 to 3 move (link3).
+pub const EXCLUDED_JOINT_PAIRS: [(usize, usize); 1] = [(1, 3)];
 
 /// Errors while building a collision model, scene or workspace.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -174,7 +184,54 @@ fn pose32(t: &Isometry3<f64>) -> Pose {
     )
 }
 
-/// Half extents of a box around `g` centred on its origin, in its own frame.
+/// Where the mesh files a URDF names are found: relative to the URDF's file and on the
+/// `package://` search path ([`mesh::package_search_path`], the sim-host's too).
+#[derive(Debug, Clone)]
+struct MeshFiles {
+    urdf: Option<PathBuf>,
+    search: Vec<PathBuf>,
+}
+
+impl MeshFiles {
+    fn new(urdf: Option<&Path>) -> Self {
+        let search = match urdf {
+            Some(u) => mesh::package_search_path(u),
+            None => std::env::var_os(mesh::PACKAGE_PATH_ENV)
+                .map(|v| std::env::split_paths(&v).filter(|p| !p.as_os_str().is_empty()).collect())
+                .unwrap_or_default(),
+        };
+        Self { urdf: urdf.map(Path::to_path_buf), search }
+    }
+
+    /// The mesh of a `<mesh>` element, scaled, in the geometry's own frame.
+    fn points(&self, link: &str, filename: &str, scale: Option<&urdf_rs::Vec3>) -> Result<mesh::Mesh, BuildError> {
+        let err = |detail: String| BuildError::Geometry {
+            link: link.into(),
+            detail: format!(
+                "mesh '{filename}': {detail} (package search path: {})",
+                self.search.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(":")
+            ),
+        };
+        let relative =
+            !(filename.starts_with("package://") || filename.starts_with("file://") || filename.starts_with('/'));
+        let path = match &self.urdf {
+            Some(u) => mesh::resolve(filename, u, &self.search),
+            None if relative => {
+                Err("a relative mesh path needs the URDF's file: build with CollisionModel::from_urdf_file".into())
+            }
+            None => mesh::resolve(filename, Path::new("/"), &self.search),
+        }
+        .map_err(err)?;
+        let s = scale.map_or([1.0; 3], |s| [s[0], s[1], s[2]]);
+        if !s.iter().all(|v| v.is_finite()) {
+            return Err(err(format!("scale {s:?} is not finite")));
+        }
+        let m = mesh::read_mesh(&path).map_err(|e| err(e.to_string()))?;
+        Ok(m.map(|p| Point3::new(p.x * s[0], p.y * s[1], p.z * s[2])))
+    }
+}
+
+/// Half extents of a box around primitive geometry `g` centred on its origin, in its own frame.
 fn bounding_half_extents(link: &str, g: &urdf_rs::Geometry) -> Result<Vector3<f64>, BuildError> {
     let e = match *g {
         urdf_rs::Geometry::Box { ref size } => Vector3::new(size[0], size[1], size[2]) / 2.0,
@@ -182,11 +239,30 @@ fn bounding_half_extents(link: &str, g: &urdf_rs::Geometry) -> Result<Vector3<f6
         urdf_rs::Geometry::Cylinder { radius, length } => Vector3::new(radius, radius, length / 2.0),
         urdf_rs::Geometry::Sphere { radius } => Vector3::new(radius, radius, radius),
         urdf_rs::Geometry::Mesh { .. } => {
-            return Err(BuildError::Geometry { link: link.into(), detail: "meshes are not supported".into() })
+            return Err(BuildError::Geometry { link: link.into(), detail: "a mesh has no primitive extents".into() })
         }
     };
     check_extents(link, &e)?;
     Ok(e)
+}
+
+/// A mesh whose convex hull contains geometry `g`, in its own frame: a primitive's bounding-box
+/// corners (no triangles), or the mesh file's.
+fn hull_mesh(link: &str, g: &urdf_rs::Geometry, meshes: &MeshFiles) -> Result<mesh::Mesh, BuildError> {
+    if let urdf_rs::Geometry::Mesh { ref filename, ref scale } = *g {
+        return meshes.points(link, filename, scale.as_ref());
+    }
+    let e = bounding_half_extents(link, g)?;
+    let points = (0..8)
+        .map(|k| {
+            Point3::new(
+                if k & 1 == 0 { -e.x } else { e.x },
+                if k & 2 == 0 { -e.y } else { e.y },
+                if k & 4 == 0 { -e.z } else { e.z },
+            )
+        })
+        .collect();
+    Ok(mesh::Mesh { points, triangles: Vec::new() })
 }
 
 fn check_extents(link: &str, e: &Vector3<f64>) -> Result<(), BuildError> {
@@ -197,16 +273,22 @@ fn check_extents(link: &str, e: &Vector3<f64>) -> Result<(), BuildError> {
     }
 }
 
-/// One element for a collision shape on a chain link; `at` is the shape origin in the frame of
-/// the last joint that moves the link.
-fn element_on_chain(link: &str, g: &urdf_rs::Geometry, at: Isometry3<f64>) -> Result<Local, BuildError> {
-    let capsule = |radius: f64, half: f64| -> Result<Local, BuildError> {
+/// The elements for a collision shape on a chain link; `at` is the shape origin in the frame of
+/// the last joint that moves the link. A mesh becomes the capsules
+/// [`mesh::bounding_capsules`] puts around its (scaled) vertices.
+fn elements_on_chain(
+    link: &str,
+    g: &urdf_rs::Geometry,
+    at: Isometry3<f64>,
+    meshes: &MeshFiles,
+) -> Result<Vec<Local>, BuildError> {
+    let capsule = |radius: f64, half: f64| -> Result<Vec<Local>, BuildError> {
         check_extents(link, &Vector3::new(radius, radius, half))?;
-        Ok(Local::Capsule {
+        Ok(vec![Local::Capsule {
             a: at * Point3::new(0.0, 0.0, -half),
             b: at * Point3::new(0.0, 0.0, half),
             radius: radius as f32,
-        })
+        }])
     };
     match *g {
         urdf_rs::Geometry::Capsule { radius, length } => capsule(radius, length / 2.0),
@@ -214,19 +296,37 @@ fn element_on_chain(link: &str, g: &urdf_rs::Geometry, at: Isometry3<f64>) -> Re
         // each end, so never smaller than the real part.
         urdf_rs::Geometry::Cylinder { radius, length } => capsule(radius, length / 2.0),
         urdf_rs::Geometry::Sphere { radius } => capsule(radius, 0.0),
-        _ => {
+        urdf_rs::Geometry::Mesh { .. } => {
+            let caps = mesh::bounding_capsules(&hull_mesh(link, g, meshes)?, mesh::MAX_CAPSULES_PER_MESH).ok_or_else(
+                || BuildError::Geometry { link: link.into(), detail: "mesh vertices are not finite".into() },
+            )?;
+            // Rounding the radius to f32 must not shrink it.
+            let r32 = |r: f64| (r as f32).max((r + 1e-7 * r.abs()) as f32);
+            Ok(caps.iter().map(|c| Local::Capsule { a: at * c.a, b: at * c.b, radius: r32(c.radius) }).collect())
+        }
+        urdf_rs::Geometry::Box { .. } => {
             let e = bounding_half_extents(link, g)?;
             let half = Cuboid::new(Vector::new(e.x as f32, e.y as f32, e.z as f32));
-            Ok(Local::Cuboid { pose: at, half })
+            Ok(vec![Local::Cuboid { pose: at, half }])
         }
     }
 }
 
 impl CollisionModel {
-    /// Reads the collision geometry of `model`'s robot from the same URDF text.
+    /// Reads the collision geometry of `model`'s robot from the same URDF text. Without the
+    /// URDF's file, meshes are found only by absolute path, `file://` or `package://` on
+    /// `$R2G_PACKAGE_PATH`; [`Self::from_urdf_file`] resolves them as the sim-host does.
     pub fn from_urdf_str(xml: &str, model: &RobotModel) -> Result<Self, BuildError> {
         let robot = urdf_rs::read_from_string(xml).map_err(|e| BuildError::Urdf(e.to_string()))?;
-        Self::new(&robot, model)
+        Self::build(&robot, model, &MeshFiles::new(None))
+    }
+
+    /// As [`Self::from_urdf_str`] for URDF text `xml` read from the file `urdf`: mesh filenames
+    /// resolve as the sim-host resolves them ([`mesh::resolve`]: relative to the file's folder,
+    /// `package://` on [`mesh::package_search_path`]). Mesh files are read here, once.
+    pub fn from_urdf_file(xml: &str, urdf: &Path, model: &RobotModel) -> Result<Self, BuildError> {
+        let robot = urdf_rs::read_from_string(xml).map_err(|e| BuildError::Urdf(e.to_string()))?;
+        Self::build(&robot, model, &MeshFiles::new(Some(urdf)))
     }
 
     /// Bodies: every link that is a kinematic frame of `model` and has collision geometry, plus
@@ -236,7 +336,16 @@ impl CollisionModel {
     /// fully open, a 20 x 52 x 54 mm box per side). The box does not move with the fingers, so it
     /// is exact when the gripper is open and conservative otherwise. Links further down, or below
     /// a revolute joint that is not an arm joint, are not modelled.
+    ///
+    /// Mesh geometry on a chain link becomes 1 to [`mesh::MAX_CAPSULES_PER_MESH`] capsules that
+    /// together contain the mesh ([`mesh::bounding_capsules`]); on a finger all its vertices
+    /// count in the box.
+    /// Meshes are found as [`Self::from_urdf_str`] says.
     pub fn new(robot: &urdf_rs::Robot, model: &RobotModel) -> Result<Self, BuildError> {
+        Self::build(robot, model, &MeshFiles::new(None))
+    }
+
+    fn build(robot: &urdf_rs::Robot, model: &RobotModel, meshes: &MeshFiles) -> Result<Self, BuildError> {
         let kin = model.kin.clone();
         let mut bodies = Vec::new();
         let mut elements = Vec::new();
@@ -251,8 +360,9 @@ impl CollisionModel {
             bodies.push(Body { name: frame.name.clone(), moved_by: frame.moved_by });
             for c in &link.collision {
                 let at = kin.offset(id) * isometry(&c.origin);
-                let local = element_on_chain(&link.name, &c.geometry, at)?;
-                elements.push(Element { body, moved_by: frame.moved_by, local });
+                for local in elements_on_chain(&link.name, &c.geometry, at, meshes)? {
+                    elements.push(Element { body, moved_by: frame.moved_by, local });
+                }
             }
         }
         for j in robot.joints.iter().filter(|j| matches!(j.joint_type, urdf_rs::JointType::Prismatic)) {
@@ -272,15 +382,10 @@ impl CollisionModel {
             let mut min = Vector3::repeat(f64::INFINITY);
             let mut max = Vector3::repeat(f64::NEG_INFINITY);
             for c in &link.collision {
-                let e = bounding_half_extents(&link.name, &c.geometry)?;
+                let points = hull_mesh(&link.name, &c.geometry, meshes)?.points;
                 for s in [lo, hi] {
                     let t = isometry(&j.origin) * Translation3::from(axis * s) * isometry(&c.origin);
-                    for k in 0..8 {
-                        let corner = Point3::new(
-                            if k & 1 == 0 { -e.x } else { e.x },
-                            if k & 2 == 0 { -e.y } else { e.y },
-                            if k & 4 == 0 { -e.z } else { e.z },
-                        );
+                    for corner in &points {
                         let p = (t * corner).coords;
                         min = min.inf(&p);
                         max = max.sup(&p);
@@ -308,8 +413,9 @@ impl CollisionModel {
         for i in 0..elements.len() {
             for k in i + 1..elements.len() {
                 let (a, b) = (&bodies[elements[i].body], &bodies[elements[k].body]);
-                let listed =
-                    EXCLUDED_PAIRS.iter().any(|&(x, y)| (a.name == x && b.name == y) || (a.name == y && b.name == x));
+                let listed = EXCLUDED_JOINT_PAIRS
+                    .iter()
+                    .any(|&(x, y)| (a.moved_by, b.moved_by) == (x, y) || (a.moved_by, b.moved_by) == (y, x));
                 if a.moved_by.abs_diff(b.moved_by) >= MIN_JOINTS_APART && !listed {
                     pairs.push((i as u8, k as u8));
                 }
@@ -764,4 +870,147 @@ pub struct Proximity<'a> {
 pub struct Clearance<'a> {
     pub self_pair: Option<Proximity<'a>>,
     pub obstacle: Option<Proximity<'a>>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const ROOT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
+
+    fn third_party() -> Option<PathBuf> {
+        let p = Path::new(ROOT).join("robots/packages/example-robot-data/robots/panda_description/urdf/panda.urdf");
+        p.is_file().then_some(p)
+    }
+
+    /// Our Panda with link3's collision capsule replaced by `mesh` (a `<collision>` element's
+    /// inside), written beside `dir`'s files as `robot.urdf`.
+    fn with_link3_mesh(dir: &Path, collision: &str) -> (String, PathBuf, RobotModel) {
+        let text = std::fs::read_to_string(Path::new(ROOT).join("robots/panda/panda.urdf")).expect("URDF");
+        let old = r#"<collision><origin xyz="0 0 -0.145" rpy="0 0 0"/><geometry><capsule radius="0.06" length="0.15"/></geometry></collision>"#;
+        assert!(text.contains(old));
+        let xml = text.replace(old, &format!("<collision>{collision}</collision>"));
+        let path = dir.join("robot.urdf");
+        std::fs::write(&path, &xml).expect("write");
+        let robot = RobotModel::from_urdf_str(&xml, "hand_tcp", crate::Profile::Panda).expect("model");
+        (xml, path, robot)
+    }
+
+    fn scratch(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("r2g-collision-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).expect("temp dir");
+        d
+    }
+
+    /// Capsules (in their joint frame) of the elements of body `name`.
+    fn capsules(col: &CollisionModel, name: &str) -> Vec<mesh::Capsule> {
+        col.elements
+            .iter()
+            .filter(|e| col.bodies[e.body].name == name)
+            .map(|e| match e.local {
+                Local::Capsule { a, b, radius } => mesh::Capsule { a, b, radius: f64::from(radius) },
+                Local::Cuboid { .. } => panic!("{name}: a box"),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_mesh_is_scaled_placed_and_held() {
+        let d = scratch("scaled");
+        // A unit cube, binary STL, scaled to 0.04 x 0.06 x 0.2 and placed off the link origin.
+        let mut cube = mesh::Mesh::default();
+        for k in 0..8 {
+            cube.points.push(Point3::new(f64::from(k & 1), f64::from((k >> 1) & 1), f64::from((k >> 2) & 1)));
+        }
+        let faces = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]];
+        let mut stl = vec![0u8; 80];
+        stl.extend(12u32.to_le_bytes());
+        for f in faces {
+            for t in [[f[0], f[1], f[2]], [f[0], f[2], f[3]]] {
+                stl.extend([0u8; 12]);
+                for i in t {
+                    stl.extend(cube.points[i].coords.iter().flat_map(|v| (*v as f32).to_le_bytes()));
+                }
+                stl.extend([0u8; 2]);
+            }
+        }
+        std::fs::write(d.join("cube.stl"), stl).expect("write");
+        let origin = urdf_rs::Pose { xyz: urdf_rs::Vec3([0.01, -0.02, -0.25]), rpy: urdf_rs::Vec3([0.3, 0.0, 0.5]) };
+        let (xml, path, robot) = with_link3_mesh(
+            &d,
+            r#"<origin xyz="0.01 -0.02 -0.25" rpy="0.3 0 0.5"/><geometry><mesh filename="cube.stl" scale="0.04 0.06 0.2"/></geometry>"#,
+        );
+        let col = CollisionModel::from_urdf_file(&xml, &path, &robot).expect("model");
+        let caps = capsules(&col, "link3");
+        let at = col.kin.offset(col.kin.frame("link3").expect("link3")) * isometry(&origin);
+        for p in &cube.points {
+            let q = at * Point3::new(p.x * 0.04, p.y * 0.06, p.z * 0.2);
+            assert!(caps.iter().any(|c| c.axis_distance(&q) <= c.radius), "corner {q:?} outside {caps:?}");
+        }
+        // Tight enough: no capsule wider than the box's half diagonal across its long axis.
+        assert!(caps.iter().all(|c| c.radius <= (0.02f64.hypot(0.03)) + 1e-5), "{caps:?}");
+        // Without the URDF's file a relative path cannot be found.
+        let e = CollisionModel::from_urdf_str(&xml, &robot).unwrap_err().to_string();
+        assert!(e.contains("link3") && e.contains("cube.stl") && e.contains("needs the URDF's file"), "{e}");
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn bad_meshes_are_errors_naming_link_file_and_line() {
+        let d = scratch("bad");
+        std::fs::write(d.join("bad.obj"), "v 0 0 0\nv 1 0 0\nv 0 1 zero\nf 1 2 3\n").expect("write");
+        let (xml, path, robot) = with_link3_mesh(&d, r#"<geometry><mesh filename="bad.obj"/></geometry>"#);
+        let e = CollisionModel::from_urdf_file(&xml, &path, &robot).unwrap_err().to_string();
+        assert!(e.contains("link 'link3'") && e.contains("bad.obj:3: bad vertex line 'v 0 1 zero'"), "{e}");
+        let (xml, path, robot) =
+            with_link3_mesh(&d, r#"<geometry><mesh filename="package://no_such_pkg/m.stl"/></geometry>"#);
+        let e = CollisionModel::from_urdf_file(&xml, &path, &robot).unwrap_err().to_string();
+        assert!(e.contains("no package 'no_such_pkg'") && e.contains("package search path"), "{e}");
+        let (xml, path, robot) = with_link3_mesh(&d, r#"<geometry><mesh filename="missing.stl"/></geometry>"#);
+        let e = CollisionModel::from_urdf_file(&xml, &path, &robot).unwrap_err().to_string();
+        assert!(e.contains("missing.stl does not exist"), "{e}");
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    /// The third-party Panda (example-robot-data, STL collision meshes, `panda_` link names):
+    /// every mesh vertex inside its body's capsules in the joint frame, the same pair rule as
+    /// ours by chain position, and the fingers' boxes. Skipped without robots/packages/.
+    #[test]
+    fn third_party_panda_collision_model() {
+        let Some(urdf) = third_party() else {
+            eprintln!("skipped: robots/packages/ missing (scripts/setup-venv.sh)");
+            return;
+        };
+        let xml = std::fs::read_to_string(&urdf).expect("URDF");
+        let robot = RobotModel::from_urdf_str(&xml, "panda_hand_tcp", crate::Profile::Panda).expect("model");
+        let t = std::time::Instant::now();
+        let col = CollisionModel::from_urdf_file(&xml, &urdf, &robot).expect("collision model");
+        eprintln!("third-party collision model: {} shapes, built in {:?}", col.shape_count(), t.elapsed());
+        let parsed = urdf_rs::read_from_string(&xml).expect("parse");
+        let files = MeshFiles::new(Some(&urdf));
+        for name in ["panda_link0", "panda_link1", "panda_link2", "panda_link3", "panda_link4", "panda_link5"]
+            .into_iter()
+            .chain(["panda_link6", "panda_link7", "panda_hand"])
+        {
+            let caps = capsules(&col, name);
+            assert!((1..=mesh::MAX_CAPSULES_PER_MESH).contains(&caps.len()), "{name}: {}", caps.len());
+            let link = parsed.links.iter().find(|l| l.name == name).expect("link");
+            let at = col.kin.offset(col.kin.frame(name).expect("frame")) * isometry(&link.collision[0].origin);
+            let m = hull_mesh(name, &link.collision[0].geometry, &files).expect("mesh");
+            for p in &m.points {
+                let q = at * p;
+                assert!(caps.iter().any(|c| c.axis_distance(&q) <= c.radius), "{name}: {q:?}");
+            }
+        }
+        let names: Vec<&str> = col.body_names().collect();
+        assert_eq!(names.len(), 11, "{names:?}");
+        let idx = |n: &str| names.iter().position(|&x| x == n).expect("body");
+        assert!(!col.is_checked(idx("panda_link1"), idx("panda_link3")), "EXCLUDED_PAIRS by chain position");
+        assert!(col.is_checked(idx("panda_link2"), idx("panda_link4")));
+        assert!(col
+            .check(&[0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785], &StaticScene::new(), &Workspace::unbounded(), 0.002)
+            .is_ok());
+        assert!(col.shape_count() <= MAX_SHAPES);
+    }
 }

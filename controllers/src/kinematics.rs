@@ -112,6 +112,30 @@ impl Kinematics {
         Ok(Self { origins, axes, frames, by_name, tcp, flange })
     }
 
+    /// The TCP's pose in the flange frame.
+    pub fn flange_from_tcp(&self) -> Isometry3<f64> {
+        self.offset(self.flange).inverse() * self.offset(self.tcp)
+    }
+
+    /// Makes the frame `flange_from_tcp` beyond the flange the TCP (a measured tool transform
+    /// instead of the description's TCP link). The description's frames stay as they are; the
+    /// new frame is named `tcp`. Everything that uses [`Self::tcp`] (FK, Jacobians, IK, the
+    /// workspace check) follows it.
+    pub fn set_tcp(&mut self, flange_from_tcp: Isometry3<f64>) -> Result<(), Error> {
+        let flange = &self.frames[self.flange.0];
+        if self.flange == self.tcp || flange.moved_by != N {
+            return Err(Error::Urdf(format!(
+                "no flange frame fixed to joint 7 before the TCP '{}': a flange-to-TCP transform cannot be applied",
+                self.frames[self.tcp.0].name
+            )));
+        }
+        let frame = Frame { name: "tcp".into(), moved_by: N, offset: flange.offset * flange_from_tcp };
+        self.tcp = FrameId(self.frames.len());
+        self.frames.push(frame);
+        self.by_name.insert("tcp".into(), self.tcp);
+        Ok(())
+    }
+
     pub fn frames(&self) -> &[Frame] {
         &self.frames
     }

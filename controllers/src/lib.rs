@@ -8,6 +8,7 @@ pub mod ik;
 pub mod kinematics;
 pub mod limiter;
 pub mod math;
+pub mod mesh;
 pub mod monitor;
 pub mod reference;
 pub mod robot;

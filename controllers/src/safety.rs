@@ -33,9 +33,12 @@ pub struct Table {
 impl SafetyChecks {
     /// The checks for a robot standing at `base_position_m` (yaw `base_yaw_rad`) in a world
     /// with an optional table; the workspace defaults to the table's footprint up to 1 m above
-    /// it, or to a box around the arm's reach without a table.
+    /// it, or to a box around the arm's reach without a table. `urdf_path`, the file `urdf` was
+    /// read from, locates its meshes ([`CollisionModel::from_urdf_file`]).
+    #[allow(clippy::too_many_arguments)]
     pub fn for_scene(
         urdf: &str,
+        urdf_path: Option<&std::path::Path>,
         robot: &RobotModel,
         base_position_m: [f64; 3],
         base_yaw_rad: f64,
@@ -43,7 +46,10 @@ impl SafetyChecks {
         workspace: Option<([f64; 3], [f64; 3])>,
         margin_m: f64,
     ) -> Result<Self, BuildError> {
-        let collision = CollisionModel::from_urdf_str(urdf, robot)?;
+        let collision = match urdf_path {
+            Some(path) => CollisionModel::from_urdf_file(urdf, path, robot)?,
+            None => CollisionModel::from_urdf_str(urdf, robot)?,
+        };
         let world_from_base = Isometry3::from_parts(
             Translation3::new(base_position_m[0], base_position_m[1], base_position_m[2]),
             UnitQuaternion::from_euler_angles(0.0, 0.0, base_yaw_rad),

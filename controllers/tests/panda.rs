@@ -224,3 +224,27 @@ fn fk_reproduces_the_published_check_values() {
     assert!(close(&p, &[0.088, 0.0, 0.8226]), "{p:?}");
     assert!(same_rot(q, [0.923879532511287, 0.38268343236509, 0.0, 0.0]), "{q:?}");
 }
+
+#[test]
+fn a_measured_flange_to_tcp_transform_replaces_the_description_tcp() {
+    use controllers::kinematics::{from_arrays, to_arrays};
+    let mut r = panda();
+    let described = r.kin.flange_from_tcp();
+    let (p, _) = to_arrays(&described);
+    assert!((p[2] - 0.1034).abs() < 1e-12, "{p:?}");
+    let before = r.kin.fk(&HOME, r.kin.tcp);
+    // 3 mm further along the tool axis and 2 mm along tool x, same orientation.
+    let (_, q) = to_arrays(&described);
+    r.kin.set_tcp(described * from_arrays([0.002, 0.0, 0.003], [0.0, 0.0, 0.0, 1.0])).expect("set");
+    assert_eq!(r.kin.frame("tcp"), Some(r.kin.tcp));
+    assert!(r.kin.frame("hand_tcp").is_some_and(|f| f != r.kin.tcp), "the description's frame stays");
+    let after = r.kin.fk(&HOME, r.kin.tcp);
+    let want = before * nalgebra::Translation3::new(0.002, 0.0, 0.003);
+    assert!((after.translation.vector - want.translation.vector).norm() < 1e-12);
+    assert!(after.rotation.angle_to(&before.rotation) < 1e-12);
+    let (_, q2) = to_arrays(&r.kin.flange_from_tcp());
+    assert!(q.iter().zip(q2).all(|(a, b)| (a - b).abs() < 1e-12));
+    // The Jacobian is the new point's.
+    let (pose, _) = r.kin.jacobian(&HOME, r.kin.tcp);
+    assert!((pose.translation.vector - after.translation.vector).norm() < 1e-12);
+}

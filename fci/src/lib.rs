@@ -10,7 +10,7 @@ use controllers::RobotModel;
 use franka::{FrankaError, JointPositions, MoveControllerMode, RealtimeConfig, Robot, RobotOptions};
 use ipc_schema::process::{self, PeerWatch};
 use ipc_schema::{
-    JointCommand, Pose, Qos, Services, SimInfo, SimState, N_JOINTS, ROBOT_NEEDS_OPERATOR, ROBOT_OK, ROBOT_RECOVERING,
+    JointCommand, Pose, Qos, Services, SimInfo, SimState, ROBOT_NEEDS_OPERATOR, ROBOT_OK, ROBOT_RECOVERING,
 };
 use runtime::robot_config::Reflexes;
 use runtime::Histogram;
@@ -214,6 +214,15 @@ pub fn run(opts: &Options) -> anyhow::Result<Stats> {
         Some(10) => franka::robot::VersionPolicy::Exact(franka::FciVersion::V10),
         Some(v) => bail!("FCI version {v} is not one this build speaks: 5 (Panda) or 10 (FR3)"),
     };
+    // Threads of our own first: connecting raises this thread to the highest real-time priority
+    // (libfranka's way), which threads started afterwards would inherit; these do blocking I/O.
+    let control = PeerWatch::spawn(process::control_node(&opts.instance), Duration::from_secs(30));
+    let hand = if opts.gripper {
+        let host = opts.address.split(':').next().unwrap_or(&opts.address);
+        Some(Hand::start(host, model.finger_speed_m_s * 2.0)?)
+    } else {
+        None
+    };
     let robot = Robot::with_options(&opts.address, RobotOptions::new(realtime).with_version(version))
         .map_err(|e| anyhow::anyhow!("connecting to the robot at {}: {}", opts.address, describe(&e)))?;
     let r = &opts.reflexes;
@@ -225,16 +234,9 @@ pub fn run(opts: &Options) -> anyhow::Result<Stats> {
             r.collision_force_n,
         )
         .map_err(|e| anyhow::anyhow!("setting the collision thresholds: {e}"))?;
-    let hand = if opts.gripper {
-        let host = opts.address.split(':').next().unwrap_or(&opts.address);
-        Some(Hand::start(host, model.finger_speed_m_s * 2.0)?)
-    } else {
-        None
-    };
 
     ipc_schema::cleanup_dead_nodes();
     let ports = Ports::open(&opts.instance)?;
-    let control = PeerWatch::spawn(process::control_node(&opts.instance), Duration::from_secs(30));
     let mut side = Side::new(&model, hand);
     eprintln!(
         "r2g-fci: instance '{}' serves the robot at {} (FCI version {})",
@@ -255,7 +257,7 @@ pub fn run(opts: &Options) -> anyhow::Result<Stats> {
         match errored.take() {
             None => {
                 // Idle: states at the robot's rate until the runtime answers one, then move.
-                if side.idle_until_answered(&robot, &ports, ROBOT_OK, 0)? {
+                if side.idle_until_answered(&robot, &ports, &control)? {
                     match side.motion(&robot, &ports, opts, &mut stats) {
                         Ok(()) => {}
                         Err(e) if is_reflex(&e) => errored = Some(motion_errors(&robot, &e)),
@@ -281,8 +283,8 @@ pub fn run(opts: &Options) -> anyhow::Result<Stats> {
                         // Wait for the operator's reset (the runtime counts them in every
                         // command), publishing states meanwhile, then try again.
                         loop {
-                            let cleared = side.idle_until_cleared(&robot, &ports, &text, clear_seen)?;
-                            let Some(c) = cleared else { return Ok(stats) };
+                            let cleared = side.idle_until_cleared(&robot, &ports, &control, &text, clear_seen)?;
+                            let Some(c) = cleared else { break };
                             clear_seen = c;
                             match robot.automatic_error_recovery() {
                                 Ok(()) => {
@@ -315,8 +317,16 @@ struct Side<'m> {
 
 impl<'m> Side<'m> {
     fn new(model: &'m RobotModel, hand: Option<Hand>) -> Self {
-        let session = ((u64::from(std::process::id()) << 32) ^ ipc_schema::monotonic_ns()) | 1;
-        Self { model, hand, session, seq: 0, command_seq: 0, reflexes: 0, error: ROBOT_OK, text: String::new() }
+        Self {
+            model,
+            hand,
+            session: new_session(),
+            seq: 0,
+            command_seq: 0,
+            reflexes: 0,
+            error: ROBOT_OK,
+            text: String::new(),
+        }
     }
 
     fn state(&mut self, rs: &franka::RobotState) -> SimState {
@@ -353,11 +363,17 @@ impl<'m> Side<'m> {
         ports.publish(s)
     }
 
-    /// Publishes states until the runtime answers one (true) or a stop is requested (false).
-    fn idle_until_answered(&mut self, robot: &Robot, ports: &Ports, error: u32, _clear: u64) -> anyhow::Result<bool> {
-        self.error = error;
+    /// Publishes states until the runtime answers one (true), a stop is requested or the
+    /// runtime is gone (false).
+    fn idle_until_answered(
+        &mut self,
+        robot: &Robot,
+        ports: &Ports,
+        control: &process::PeerWatch,
+    ) -> anyhow::Result<bool> {
+        self.error = ROBOT_OK;
         loop {
-            if process::stop_requested() {
+            if process::stop_requested() || control.lost() {
                 return Ok(false);
             }
             let rs = robot.read_once().map_err(|e| anyhow::anyhow!("reading the robot state: {}", describe(&e)))?;
@@ -370,17 +386,19 @@ impl<'m> Side<'m> {
     }
 
     /// Publishes states (flagged: needs an operator) until the runtime's commands carry an
-    /// operator reset newer than `seen`; returns its count (None: stop requested).
+    /// operator reset newer than `seen`; returns its count (None: stop requested, or the
+    /// runtime is gone).
     fn idle_until_cleared(
         &mut self,
         robot: &Robot,
         ports: &Ports,
+        control: &process::PeerWatch,
         text: &str,
         seen: u64,
     ) -> anyhow::Result<Option<u64>> {
         (self.error, self.text) = (ROBOT_NEEDS_OPERATOR, text.to_string());
         loop {
-            if process::stop_requested() {
+            if process::stop_requested() || control.lost() {
                 return Ok(None);
             }
             let rs = robot.read_once().map_err(|e| anyhow::anyhow!("reading the robot state: {}", describe(&e)))?;
@@ -403,7 +421,6 @@ impl<'m> Side<'m> {
         stats.motions += 1;
         let mut control = robot.start_joint_position_control(MoveControllerMode::JointImpedance)?;
         let budget = Duration::from_micros(opts.reply_budget_us);
-        let mut last_q: Option<[f64; N_JOINTS]> = None;
         let mut missed = 0u32;
         let mut last_ms: Option<u64> = None;
         loop {
@@ -436,22 +453,25 @@ impl<'m> Side<'m> {
                     if let Some(h) = &self.hand {
                         h.target_m.store((2.0 * c.finger_m).to_bits(), Relaxed);
                     }
-                    last_q = Some(c.q_rad);
                     missed = 0;
                 }
                 _ => {
                     stats.late_or_missing += u64::from(!stop);
                     missed += 1;
                     if stop || missed >= opts.max_missed {
-                        // Finish where the last command left the arm; the robot holds there.
-                        let q = last_q.unwrap_or(rs.q_d);
-                        let mut end = JointPositions::new(q);
+                        // Finish where the robot's own interpolation has the arm now (it went on
+                        // past the last command while answers were missing); it holds there.
+                        let mut end = JointPositions::new(rs.q_d);
                         end.motion_finished = true;
                         control.write_once(&end, None)?;
                         if !stop {
                             eprintln!(
                                 "r2g-fci: the runtime did not answer {missed} robot cycles in a row; motion finished, the arm holds"
                             );
+                            // A new session: the runtime takes it as a robot side that came back
+                            // (the running chunk fails) and resumes from the measured joints
+                            // once the arm rests, never from where its own commands had got to.
+                            self.session = new_session();
                         }
                         return Ok(());
                     }
@@ -459,6 +479,11 @@ impl<'m> Side<'m> {
             }
         }
     }
+}
+
+/// A session number no earlier run or motion of this process used.
+fn new_session() -> u64 {
+    ((u64::from(std::process::id()) << 32) ^ ipc_schema::monotonic_ns()) | 1
 }
 
 /// A motion that one of the robot's own reflexes ended (rather than a lost connection).

@@ -18,7 +18,8 @@ struct Args {
     /// config/robot.json: collision thresholds and the reflex window (its "franka" table).
     #[arg(long)]
     robot_config: Option<PathBuf>,
-    /// How long after a robot state the runtime's command may arrive and still be sent, µs.
+    /// How long after a robot state the runtime's command may arrive and still be sent, µs
+    /// (100..=900: within the robot's 1 ms cycle, before its next state).
     #[arg(long, default_value_t = 700)]
     reply_budget_us: u64,
     /// Robot cycles in a row without the runtime's answer before the motion is finished.
@@ -49,7 +50,10 @@ fn run() -> anyhow::Result<()> {
     let a = Args::parse();
     ipc_schema::process::install_stop_signals();
     ipc_schema::process::die_with_parent();
-    anyhow::ensure!((100..=5000).contains(&a.reply_budget_us), "--reply-budget-us must be within 100..=5000");
+    anyhow::ensure!(
+        (100..=900).contains(&a.reply_budget_us),
+        "--reply-budget-us must be within 100..=900 (an answer must leave before the robot's next state, 1 ms later)"
+    );
     anyhow::ensure!(
         (1..=19).contains(&a.max_missed),
         "--max-missed must be within 1..=19 (the robot's own limit is 20)"

@@ -10,7 +10,7 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 /// Bumped whenever any payload below changes layout or meaning. Every service carries it as
 /// the attribute `r2g.schema`; a process of another build is refused when it connects.
-pub const SCHEMA_VERSION: u32 = 5;
+pub const SCHEMA_VERSION: u32 = 6;
 /// Attribute key that carries [`SCHEMA_VERSION`] on every service.
 pub const SCHEMA_ATTRIBUTE: &str = "r2g.schema";
 
@@ -30,6 +30,8 @@ pub const MAX_CAMERAS: usize = 4;
 pub const NAME_LEN: usize = 32;
 /// Bytes of a reason text, NUL-padded UTF-8.
 pub const REASON_LEN: usize = 240;
+/// Bytes of [`RuntimeInfo::calibration`], NUL-padded UTF-8.
+pub const CALIBRATION_LEN: usize = 8192;
 
 /// A rigid transform: translation in metres and a unit quaternion `[x, y, z, w]`.
 #[repr(C)]
@@ -93,8 +95,7 @@ pub const ROBOT_OK: u32 = 0;
 /// [`SimState::robot_error`]: one of the robot's own reflexes stopped the motion and the robot
 /// side runs its bounded automatic recovery; it publishes no state until that ends.
 pub const ROBOT_RECOVERING: u32 = 1;
-/// [`SimState::robot_error`]: recovery failed (or reflexes came too often): the robot side waits
-/// for an operator ([`JointCommand::clear_seq`]) before it tries again.
+/// [`SimState::robot_error`]: recovery failed: the robot side waits for an operator ([`JointCommand::clear_seq`]) before it tries again.
 pub const ROBOT_NEEDS_OPERATOR: u32 = 2;
 /// Bytes of [`SimState::error_text`].
 pub const ERROR_TEXT_LEN: usize = 96;
@@ -333,7 +334,7 @@ pub struct RobotState {
 /// runtime → agents, published once with history: the limits in force (`effective_safety`).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
-#[type_name("r2g.RuntimeInfo.v2")]
+#[type_name("r2g.RuntimeInfo.v3")]
 pub struct RuntimeInfo {
     pub schema: u32,
     pub mode: u32,
@@ -367,6 +368,27 @@ pub struct RuntimeInfo {
     pub reflex_force_n: f64,
     /// Franka profile: contact force that needs an operator, N.
     pub operator_force_n: f64,
+    /// Where the TCP and the configured cameras' calibrations come from, one JSON object
+    /// (`get_state()["calibration"]`, runtime/README.md "Calibration"), NUL-padded UTF-8.
+    /// (Blocks of 32 × 32 bytes so that the payload keeps a derived `Default`.)
+    pub calibration: [[[u8; 32]; 32]; CALIBRATION_LEN / 1024],
+}
+
+impl RuntimeInfo {
+    /// [`RuntimeInfo::calibration`] as text (up to the first NUL).
+    pub fn calibration_str(&self) -> &str {
+        read_str(self.calibration.as_flattened().as_flattened())
+    }
+
+    /// Sets [`RuntimeInfo::calibration`]; a text that does not fit is refused whole (a cut JSON
+    /// object would not parse), with its length.
+    pub fn set_calibration(&mut self, text: &str) -> Result<(), usize> {
+        if text.len() > CALIBRATION_LEN {
+            return Err(text.len());
+        }
+        write_str(self.calibration.as_flattened_mut().as_flattened_mut(), text);
+        Ok(())
+    }
 }
 
 /// Which semantics the runtime follows (`config/robot.json` `profile`).
@@ -766,6 +788,18 @@ mod tests {
     }
 
     #[test]
+    fn the_calibration_report_is_kept_whole_or_refused() {
+        let mut i = RuntimeInfo::default();
+        assert_eq!(i.calibration_str(), "");
+        i.set_calibration(r#"{"tcp": {"source": "description"}}"#).expect("fits");
+        assert_eq!(i.calibration_str(), r#"{"tcp": {"source": "description"}}"#);
+        let full = "x".repeat(CALIBRATION_LEN);
+        i.set_calibration(&full).expect("exactly fits");
+        assert_eq!(i.calibration_str().len(), CALIBRATION_LEN);
+        assert_eq!(i.set_calibration(&format!("{full}y")), Err(CALIBRATION_LEN + 1));
+    }
+
+    #[test]
     fn formatted_reasons_fit_the_buffer() {
         let r = Reply::formatted(1, 2, Status::Rejected, format_args!("joint {} off by {:.2}", 4, 0.5));
         assert_eq!(r.reason_str(), "joint 4 off by 0.50");
@@ -795,13 +829,15 @@ mod tests {
         // Schema 2 added the external force (SimState, RobotState), the fault flag, the reply's
         // latency stamps and the profile limits; schema 3 the continuous TCP axis-angle vector
         // (RobotState); schema 4 the robot side's session (SimState, JointCommand); schema 5
-        // pacing, the robot's own errors (SimState) and operator resets (JointCommand).
+        // pacing, the robot's own errors (SimState) and operator resets (JointCommand); schema 6
+        // the calibration report (RuntimeInfo).
         assert_eq!(core::mem::size_of::<SimState>(), 248 + 8 + 4 + 4 + 8 + ERROR_TEXT_LEN);
         assert_eq!(core::mem::size_of::<JointCommand>(), 152);
         assert_eq!(core::mem::size_of::<Request>(), 40 + 8 * WAYPOINT_LEN * MAX_CHUNK);
         assert_eq!(core::mem::size_of::<RobotState>(), 280);
         assert_eq!(core::mem::size_of::<Reply>(), 48 + REASON_LEN);
-        assert_eq!(SCHEMA_VERSION, 5);
+        assert_eq!(core::mem::size_of::<RuntimeInfo>(), 392 + CALIBRATION_LEN);
+        assert_eq!(SCHEMA_VERSION, 6);
     }
 }
 

@@ -302,7 +302,36 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>, raw: boo
     fb.set_item("submit_to_first_motion_us", feedback.first_motion_us)?;
     out.set_item("control_feedback", fb)?;
     out.set_item("effective_safety", effective_safety(py, info.as_ref())?)?;
+    out.set_item("calibration", calibration(py, info.as_ref(), &names)?)?;
     Ok(out)
+}
+
+/// Where the TCP and camera calibrations come from: the runtime's report (the TCP, and every
+/// camera the robot config names a file for), plus `{"source": "scene"}` for each camera that
+/// sends frames without such a file (its frames carry the simulator's calibration). Empty until
+/// the runtime has published its info.
+fn calibration<'py>(py: Python<'py>, info: Option<&RuntimeInfo>, sending: &[String]) -> PyResult<Bound<'py, PyDict>> {
+    let Some(text) = info.map(|i| i.calibration_str()).filter(|t| !t.is_empty()) else {
+        return Ok(PyDict::new(py));
+    };
+    let report = py.import("json")?.getattr("loads")?.call1((text,))?;
+    let report =
+        report.cast_into::<PyDict>().map_err(|_| PyRuntimeError::new_err("calibration report is not an object"))?;
+    let cameras = match report.get_item("cameras")? {
+        Some(c) => {
+            c.cast_into::<PyDict>().map_err(|_| PyRuntimeError::new_err("calibration cameras is not an object"))?
+        }
+        None => PyDict::new(py),
+    };
+    for name in sending {
+        if !cameras.contains(name)? {
+            let scene = PyDict::new(py);
+            scene.set_item("source", "scene")?;
+            cameras.set_item(name, scene)?;
+        }
+    }
+    report.set_item("cameras", cameras)?;
+    Ok(report)
 }
 
 /// The limits in force, as the runtime published them (empty until it has).

@@ -92,6 +92,13 @@ pub fn main(after_cycle: Option<fn()>) -> i32 {
         },
         None => crate::RobotConfig::default(),
     };
+    let calibration = match crate::calibration::Calibration::load(&robot.calibration) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("r2g-control: error: {e:#}");
+            return 2;
+        }
+    };
     process::install_stop_signals();
     process::die_with_parent();
     let cfg = crate::RunConfig {
@@ -110,6 +117,7 @@ pub fn main(after_cycle: Option<fn()>) -> i32 {
         operator_group: args.operator_group.clone(),
         after_cycle,
         robot,
+        calibration,
     };
     match crate::run(&cfg) {
         Ok(stats) => {

@@ -310,6 +310,12 @@ impl Controller {
         let new_reflex = state.reflexes > self.robot_reflexes;
         self.robot_reflexes = state.reflexes;
         if before == now && !new_reflex {
+            // Still waiting for an operator after a cleared fault (the retried recovery failed
+            // again): latched again, so that the next `r2g clear` retries once more.
+            if now == ipc_schema::ROBOT_NEEDS_OPERATOR && self.fault.is_none() {
+                let text = state.error_str();
+                self.fault = Some(Text::of(format_args!("the robot did not recover from its error ({text})")));
+            }
             return None;
         }
         self.robot_error = now;
@@ -827,9 +833,11 @@ impl Controller {
                 }
             }
         }
-        if self.halting && tracker.stopped() {
+        if self.halting && tracker.stopped() && self.robot_error != ipc_schema::ROBOT_RECOVERING {
             self.halting = false;
-            // The stopped chunk's reply goes out once the arm rests, so the caller can move at once.
+            // The stopped chunk's reply goes out once the arm rests, so the caller can move at
+            // once; after a robot reflex, only once the robot reports the recovery's outcome
+            // (`robot_reports` sends or escalates it).
             reply = self.stop_reply.take();
             self.reference = Reference {
                 q_rad: tracker.q_rad,
@@ -1025,10 +1033,13 @@ impl Controller {
         self.braking_before + self.tracker.map_or(0, |t| t.braking_ticks)
     }
 
-    /// The agent-facing state for the latest measurement. The TCP's axis-angle vector is the one
-    /// nearest the previous report, so reports never flip between equivalent vectors.
+    /// The agent-facing state for the latest measurement. The TCP pose is this controller's FK
+    /// of the measured joints (its TCP: the description's, or a measured one from
+    /// [`crate::calibration`]), not the robot side's, so that `ee_pose` reports the point that
+    /// ee_pose targets move. Its axis-angle vector is the one nearest the previous report, so
+    /// reports never flip between equivalent vectors.
     pub fn robot_state(&mut self, state: &SimState, seq: u64, mode: u32) -> RobotState {
-        let q = state.base_from_tcp.quat_xyzw;
+        let (p, q) = controllers::kinematics::to_arrays(&self.robot.kin.fk(&state.q_rad, self.robot.kin.tcp));
         let tcp_rotvec = match self.rotvec {
             Some(prev) => controllers::math::axis_angle_near(q, prev),
             None => controllers::math::axis_angle(q),
@@ -1041,7 +1052,7 @@ impl Controller {
             q_rad: state.q_rad,
             dq_rad_s: state.dq_rad_s,
             gripper: self.robot.gripper_from_finger(state.finger_m),
-            base_from_tcp: state.base_from_tcp,
+            base_from_tcp: ipc_schema::Pose { position_m: p, quat_xyzw: q },
             tcp_rotvec,
             control_type: self.locked.map(|c| c as u32).unwrap_or(0),
             mode,

@@ -143,6 +143,33 @@ pub enum RobotSide {
     Fci { address: String, extra: Vec<String> },
 }
 
+impl RobotSide {
+    /// The robot side's program, also the name of its systemd unit template (`<program>@.service`).
+    pub fn program(&self) -> &'static str {
+        match self {
+            RobotSide::Sim => "r2g-sim",
+            RobotSide::Fci { .. } => "r2g-fci",
+        }
+    }
+
+    /// Whether this robot side can serve an instance in `mode` with `robot_config`: a real arm
+    /// only in wall mode with the franka profile (it paces the tick and has no resets).
+    pub fn check(&self, mode: Mode, robot_config: Option<&Path>) -> anyhow::Result<()> {
+        if matches!(self, RobotSide::Sim) {
+            return Ok(());
+        }
+        let rc = robot_config.context("a real arm needs a robot config (its franka table)")?;
+        let profile = crate::RobotConfig::load(rc)?.profile;
+        if mode != Mode::Wall || profile != ipc_schema::Profile::Franka {
+            bail!(
+                "a real arm runs in wall mode with the franka profile (\"profile\": \"franka\" in {}), not in lockstep or the simulation profile",
+                rc.display()
+            );
+        }
+        Ok(())
+    }
+}
+
 /// A running instance. Dropping it stops both processes.
 pub struct Instance {
     pub name: String,
@@ -210,26 +237,26 @@ impl Instance {
             opts.render_hz.to_string(),
         ];
         sim_args.extend(opts.sim_args.iter().cloned());
+        side.check(opts.mode, opts.robot_config.as_deref())?;
+        if let Some(rc) = &opts.robot_config {
+            // Checked before anything starts (with the calibration files it names), so a bad
+            // file fails `r2g up` with its reason and leaves no robot side connected.
+            crate::calibration::Calibration::load(&crate::RobotConfig::load(rc)?.calibration)?;
+        }
         let sim = match side {
             RobotSide::Sim => spawn(&sibling("r2g-sim")?, &sim_args)?,
             RobotSide::Fci { address, extra } => {
-                let rc = opts.robot_config.as_ref().context("a real arm needs a robot config (its franka table)")?;
-                let profile = crate::RobotConfig::load(rc)?.profile;
-                if opts.mode != Mode::Wall || profile != ipc_schema::Profile::Franka {
-                    bail!(
-                        "a real arm runs in wall mode with the franka profile (\"profile\": \"franka\" in {}), not in lockstep or the simulation profile",
-                        rc.display()
-                    );
-                }
                 let mut args = vec![
                     opts.scene.display().to_string(),
                     "--instance".into(),
                     opts.instance.clone(),
                     "--robot".into(),
                     address.clone(),
-                    "--robot-config".into(),
-                    rc.display().to_string(),
                 ];
+                // Present: checked above.
+                if let Some(rc) = &opts.robot_config {
+                    args.extend(["--robot-config".into(), rc.display().to_string()]);
+                }
                 args.extend(extra.iter().cloned());
                 spawn(&sibling("r2g-fci")?, &args)?
             }
@@ -237,8 +264,6 @@ impl Instance {
         let mode = if opts.mode == Mode::Lockstep { "lockstep" } else { "wall" };
         let mut control_args = vec![scene, "--instance".into(), opts.instance.clone(), "--mode".into(), mode.into()];
         if let Some(rc) = &opts.robot_config {
-            // Checked here too, so a bad file fails `r2g up` with its reason before anything starts.
-            crate::RobotConfig::load(rc)?;
             control_args.extend(["--robot-config".into(), rc.display().to_string()]);
         }
         control_args.extend(opts.control_args.iter().cloned());
@@ -251,8 +276,7 @@ impl Instance {
                 return Err(e);
             }
         };
-        let side = if matches!(side, RobotSide::Sim) { "r2g-sim" } else { "r2g-fci" };
-        let mut inst = Self { name: opts.instance.clone(), sim, control, side };
+        let mut inst = Self { name: opts.instance.clone(), sim, control, side: side.program() };
         if let Err(e) = inst.wait_ready(opts) {
             inst.stop();
             return Err(e);

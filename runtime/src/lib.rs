@@ -1,6 +1,7 @@
 #![doc = include_str!("../README.md")]
 
 pub mod alloc_count;
+pub mod calibration;
 pub mod control_main;
 pub mod controller;
 pub mod health;
@@ -49,6 +50,8 @@ pub struct RunConfig {
     pub after_cycle: Option<fn()>,
     /// Profile and the limits added on top of the robot's (`config/robot.json`).
     pub robot: RobotConfig,
+    /// The calibration files `robot` names, as read at start.
+    pub calibration: calibration::Calibration,
 }
 
 /// Reads the robot of a scene file: its URDF (relative to the scene), TCP link and limit
@@ -61,6 +64,17 @@ pub fn robot_from_scene(scene: &Path) -> anyhow::Result<RobotModel> {
 /// obstacle, and the workspace (`[safety] workspace_min_m`, `workspace_max_m`, `margin_m`;
 /// by default the table's footprint up to 1 m above it, and a 2 mm margin).
 pub fn scene_robot(scene: &Path) -> anyhow::Result<(RobotModel, SafetyChecks)> {
+    scene_robot_with_tcp(scene, None)
+}
+
+/// As [`scene_robot`], with a measured flange-to-TCP transform (row-major 4×4, from
+/// [`calibration::Calibration::tcp`]) in place of the description's TCP link: the one place a
+/// measured TCP enters the robot model, before anything (IK, checks, the reported `ee_pose`)
+/// is built from it.
+pub fn scene_robot_with_tcp(
+    scene: &Path,
+    flange_from_tcp: Option<&calibration::Matrix>,
+) -> anyhow::Result<(RobotModel, SafetyChecks)> {
     let text = std::fs::read_to_string(scene).with_context(|| format!("reading scene {}", scene.display()))?;
     let table: toml::Table = toml::from_str(&text).with_context(|| format!("parsing scene {}", scene.display()))?;
     let robot = table.get("robot").and_then(|r| r.as_table()).context("scene has no [robot] table")?;
@@ -71,7 +85,13 @@ pub fn scene_robot(scene: &Path) -> anyhow::Result<(RobotModel, SafetyChecks)> {
         .with_context(|| format!("scene [robot] limits = \"{limits}\": use \"panda\" or \"fr3\""))?;
     let urdf_path = scene.parent().unwrap_or(Path::new(".")).join(urdf);
     let xml = std::fs::read_to_string(&urdf_path).with_context(|| format!("reading URDF {}", urdf_path.display()))?;
-    let model = RobotModel::from_urdf_str(&xml, tcp, profile)?;
+    let mut model = RobotModel::from_urdf_str(&xml, tcp, profile)?;
+    if let Some(t) = flange_from_tcp {
+        let r = [t[0][0], t[0][1], t[0][2], t[1][0], t[1][1], t[1][2], t[2][0], t[2][1], t[2][2]];
+        let iso =
+            controllers::kinematics::from_arrays([t[0][3], t[1][3], t[2][3]], controllers::math::quat_from_mat(&r));
+        model.kin.set_tcp(iso)?;
+    }
 
     let vec3 = |t: Option<&toml::Table>, key: &str| -> anyhow::Result<Option<[f64; 3]>> {
         let Some(v) = t.and_then(|t| t.get(key)) else { return Ok(None) };
@@ -103,7 +123,7 @@ pub fn scene_robot(scene: &Path) -> anyhow::Result<(RobotModel, SafetyChecks)> {
         _ => anyhow::bail!("scene [safety] needs both workspace_min_m and workspace_max_m"),
     };
     let margin = safety.and_then(|t| t.get("margin_m")).and_then(|v| v.as_float()).unwrap_or(0.002);
-    let checks = SafetyChecks::for_scene(&xml, &model, base, yaw, table_spec, ws, margin)
+    let checks = SafetyChecks::for_scene(&xml, Some(&urdf_path), &model, base, yaw, table_spec, ws, margin)
         .with_context(|| format!("safety checks for scene {}", scene.display()))?;
     Ok((model, checks))
 }
@@ -346,7 +366,7 @@ fn runtime_info(ctl: &Controller, mode: Mode, period_ns: u64, reflexes: Option<r
 /// Runs the runtime until stopped; returns what the ticks recorded.
 pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
     let services = Services::new(&cfg.instance)?;
-    let (robot, safety) = scene_robot(&cfg.scene)?;
+    let (robot, safety) = scene_robot_with_tcp(&cfg.scene, cfg.calibration.tcp.as_ref().map(|t| &t.1))?;
     let dt_s = cfg.period_ns as f64 * 1e-9;
     let mut ctl = Controller::new(robot, cfg.robot.limiter(), dt_s)
         .with_safety(safety)
@@ -414,7 +434,12 @@ fn run_loops(
         ports.reset_pub.update_connections()?;
     }
     let reflexes = (cfg.robot.profile == ipc_schema::Profile::Franka).then_some(cfg.robot.reflexes);
-    let info = runtime_info(ctl, cfg.mode, cfg.period_ns, reflexes);
+    let mut info = runtime_info(ctl, cfg.mode, cfg.period_ns, reflexes);
+    let (p, q) = controllers::kinematics::to_arrays(&ctl.robot.kin.flange_from_tcp());
+    let report = cfg.calibration.report(&controllers::math::homogeneous(p, q));
+    if let Err(len) = info.set_calibration(&report) {
+        bail!("the calibration report is {len} bytes, more than the {} that fit", ipc_schema::CALIBRATION_LEN);
+    }
     ports.info_pub.send_copy(info)?;
     health.last_state_ns.store(rt::now_ns(), std::sync::atomic::Ordering::Relaxed);
 
@@ -461,6 +486,8 @@ fn wall_loop(
     // and uses only the command answering it (a real arm's 1 kHz packets; see the README).
     let paced = latest.paced != 0;
     let mut prev_robot_time_s = latest.sim_time_s;
+    // Paced: ticks taken since the last robot state (waiting for one that did not come in time).
+    let mut ticks_since_state = 0u32;
     // Tick-to-command latency counts skipped deadlines only when our clock sets them.
     let command_period = if paced { 0 } else { period };
     loop {
@@ -542,13 +569,17 @@ fn wall_loop(
         if paced && fresh {
             // A robot cycle without a state (a lost packet, or one this loop was too late to
             // read) still moved the robot's own interpolation on: the command covers every
-            // cycle since the last state.
+            // cycle since the last state, counting the ticks already taken while waiting (at
+            // most 4 cycles are made up; a longer gap is the robot side's loss to handle).
             let cycles = ((latest.sim_time_s - prev_robot_time_s) / (period as f64 * 1e-9)).round();
-            for _ in 1..(cycles.clamp(1.0, 4.0) as u32) {
+            for _ in (1 + ticks_since_state)..(cycles.clamp(1.0, 4.0) as u32) {
                 let (c, r) = checked_tick(ctl, &mut stats);
                 (cmd, reply) = (c, reply.or(r));
             }
             prev_robot_time_s = latest.sim_time_s;
+            ticks_since_state = 0;
+        } else if paced {
+            ticks_since_state = ticks_since_state.saturating_add(1);
         }
         let reply = back.or(reply);
         // While the robot side is lost its command goes out after the tick (below): a robot side
@@ -557,7 +588,11 @@ fn wall_loop(
         let lost = lost_before || ctl.is_robot_lost();
         if !lost {
             ports.command(cmd, &mut stats);
-            stats.command_sent(woke.saturating_sub(late), command_period, rt::now_ns());
+            // Paced, only the answers to a robot state count: a command on a tick that waited
+            // in vain answers nothing the robot asked for.
+            if !paced || fresh {
+                stats.command_sent(woke.saturating_sub(late), command_period, rt::now_ns());
+            }
         }
         // Requests after the command is out. A chunk's own checks (IK, path checks: up to about
         // a millisecond) run on the planner thread; the tick only admits and commits.

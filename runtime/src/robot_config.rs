@@ -1,12 +1,13 @@
 //! `config/robot.json`: which profile the runtime follows and the limits it adds on top of the
 //! robot's own (chunk length, step caps, Franka contact thresholds). Parsed strictly: an
-//! unknown key or an unusable value is an error naming the key and what is accepted.
+//! unknown key or an unusable value is an error naming the key and what is accepted. The
+//! calibration files it names are read by [`crate::calibration`].
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use controllers::LimiterConfig;
-use ipc_schema::{Profile, MAX_CHUNK};
+use ipc_schema::{Profile, MAX_CAMERAS, MAX_CHUNK, NAME_LEN};
 use serde_json::{Map, Value};
 
 /// Franka profile: contact forces (magnitude of the filtered external force, N) that stop a chunk.
@@ -38,6 +39,74 @@ pub struct RobotConfig {
     pub max_tcp_step_m: f64,
     pub max_tcp_step_rad: f64,
     pub reflexes: Reflexes,
+    /// Calibration files (`calibration` table); read at start by [`crate::calibration`].
+    pub calibration: CalibrationFiles,
+}
+
+/// The calibration files a robot config names. [`RobotConfig::load`] resolves relative paths
+/// against the config file's folder; [`RobotConfig::parse`] keeps them as written.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct CalibrationFiles {
+    /// Measured flange-to-TCP transform (`calibration.tcp`); None: the description's TCP.
+    pub tcp: Option<PathBuf>,
+    /// Camera name → its calibration file (`calibration.cameras`), sorted by name.
+    pub cameras: Vec<(String, PathBuf)>,
+}
+
+/// Longest calibration path accepted, bytes (so that the report always fits its buffer).
+pub const MAX_CALIBRATION_PATH: usize = 256;
+
+impl CalibrationFiles {
+    fn parse(m: &Map<String, Value>) -> anyhow::Result<Self> {
+        let path = |what: &str, v: &Value| -> anyhow::Result<PathBuf> {
+            match v.as_str() {
+                Some(p) if !p.is_empty() && p.len() <= MAX_CALIBRATION_PATH && !p.chars().any(char::is_control) => {
+                    Ok(PathBuf::from(p))
+                }
+                _ => bail!(
+                    "{what} must be a file path (1 to {MAX_CALIBRATION_PATH} bytes, no control characters), got {v}"
+                ),
+            }
+        };
+        let tcp = m.get("tcp").map(|v| path("calibration.tcp", v)).transpose()?;
+        let mut cameras = Vec::new();
+        if let Some(v) = m.get("cameras") {
+            let Some(c) = v.as_object() else {
+                bail!("calibration.cameras must be an object camera name → file path")
+            };
+            if c.len() > MAX_CAMERAS {
+                bail!("calibration.cameras names {} cameras, at most {MAX_CAMERAS} are accepted", c.len());
+            }
+            for (name, v) in c {
+                let ok = (1..=NAME_LEN).contains(&name.len())
+                    && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+                if !ok {
+                    bail!("calibration.cameras: \"{name}\" is not a camera name (1 to {NAME_LEN} of A-Z a-z 0-9 _ -)");
+                }
+                cameras.push((name.clone(), path(&format!("calibration.cameras.{name}"), v)?));
+            }
+        }
+        Ok(Self { tcp, cameras })
+    }
+
+    /// Relative paths made relative to `dir` (and absolute, for the report).
+    fn resolved(mut self, dir: &Path) -> anyhow::Result<Self> {
+        let fix = |p: &mut PathBuf| -> anyhow::Result<()> {
+            let joined = dir.join(&*p);
+            *p = std::path::absolute(&joined).unwrap_or(joined);
+            if p.as_os_str().len() > MAX_CALIBRATION_PATH {
+                bail!("calibration file {} is a path of more than {MAX_CALIBRATION_PATH} bytes", p.display());
+            }
+            Ok(())
+        };
+        if let Some(p) = &mut self.tcp {
+            fix(p)?;
+        }
+        for (_, p) in &mut self.cameras {
+            fix(p)?;
+        }
+        Ok(self)
+    }
 }
 
 impl Default for RobotConfig {
@@ -59,6 +128,7 @@ impl Default for RobotConfig {
                 contact_force_n: [20.0; 6],
                 collision_force_n: [20.0; 6],
             },
+            calibration: CalibrationFiles::default(),
         }
     }
 }
@@ -107,7 +177,7 @@ fn number(m: &Map<String, Value>, what: &str, key: &str, default: f64, lo: f64, 
 impl RobotConfig {
     pub fn parse(text: &str) -> anyhow::Result<Self> {
         let root: Value = serde_json::from_str(text).context("not valid JSON")?;
-        let top = table(&root, "robot.json", &["profile", "control", "franka"])?;
+        let top = table(&root, "robot.json", &["profile", "control", "franka", "calibration"])?;
         let d = Self::default();
         let profile = match top.get("profile") {
             None => bail!("robot.json has no \"profile\": use \"simulation\" or \"franka\""),
@@ -134,6 +204,7 @@ impl RobotConfig {
                 "collision_force_n",
             ],
         )?;
+        let calibration = table(top.get("calibration").unwrap_or(&empty), "calibration", &["tcp", "cameras"])?;
         let r = &d.reflexes;
         let chunk =
             number(control, "control", "max_chunk_waypoints", d.max_chunk_waypoints as f64, 1.0, MAX_CHUNK as f64)?;
@@ -170,6 +241,7 @@ impl RobotConfig {
                 contact_force_n: numbers(franka, "franka", "contact_force_n", r.contact_force_n, 0.1, 200.0)?,
                 collision_force_n: numbers(franka, "franka", "collision_force_n", r.collision_force_n, 0.1, 200.0)?,
             },
+            calibration: CalibrationFiles::parse(calibration)?,
         };
         let r = &c.reflexes;
         let pairs = r
@@ -185,7 +257,10 @@ impl RobotConfig {
 
     pub fn load(path: &Path) -> anyhow::Result<Self> {
         let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-        Self::parse(&text).with_context(|| format!("robot config {}", path.display()))
+        let mut c = Self::parse(&text).with_context(|| format!("robot config {}", path.display()))?;
+        let dir = path.parent().unwrap_or(Path::new("."));
+        c.calibration = c.calibration.resolved(dir).with_context(|| format!("robot config {}", path.display()))?;
+        Ok(c)
     }
 
     /// The limiter settings with this configuration's caps.
@@ -221,6 +296,24 @@ mod tests {
     }
 
     #[test]
+    fn calibration_paths_resolve_against_the_config_folder() {
+        let text = r#"{"profile": "franka", "calibration": {"tcp": "cal/tcp.json",
+            "cameras": {"wrist": "/abs/wrist.json", "agentview": "agentview.json"}}}"#;
+        let parsed = RobotConfig::parse(text).unwrap().calibration;
+        assert_eq!(parsed.tcp.as_deref(), Some(Path::new("cal/tcp.json")));
+        let dir = std::env::temp_dir().join(format!("r2g-robot-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("robot.json"), text).unwrap();
+        let c = RobotConfig::load(&dir.join("robot.json")).unwrap().calibration;
+        std::fs::remove_dir_all(&dir).unwrap();
+        assert_eq!(c.tcp, Some(dir.join("cal/tcp.json")));
+        let names: Vec<&str> = c.cameras.iter().map(|(n, _)| n.as_str()).collect();
+        assert_eq!(names, ["agentview", "wrist"]);
+        assert_eq!(c.cameras[0].1, dir.join("agentview.json"));
+        assert_eq!(c.cameras[1].1, Path::new("/abs/wrist.json"));
+    }
+
+    #[test]
     fn bad_files_name_the_key_and_what_is_accepted() {
         for (text, want) in [
             (r#"{"profile": "real"}"#, "\"profile\": \"real\" is unknown"),
@@ -237,6 +330,22 @@ mod tests {
             (r#"{"profile": "franka", "franka": {"collision_torque_nm": [1, 2]}}"#, "list of 7 numbers"),
             (r#"{"profile": "franka", "franka": {"contact_force_n": [1, 2, 3, 4, 5, -6]}}"#, "-6"),
             (r#"{"profile": "#, "not valid JSON"),
+            (r#"{"profile": "franka", "calibration": {"tool": "t.json"}}"#, "calibration has an unknown key \"tool\""),
+            (r#"{"profile": "franka", "calibration": {"tcp": 3}}"#, "calibration.tcp must be a file path"),
+            (r#"{"profile": "franka", "calibration": {"tcp": ""}}"#, "calibration.tcp must be a file path"),
+            (
+                r#"{"profile": "franka", "calibration": {"cameras": ["a.json"]}}"#,
+                "calibration.cameras must be an object",
+            ),
+            (
+                r#"{"profile": "franka", "calibration": {"cameras": {"wrist": null}}}"#,
+                "calibration.cameras.wrist must be",
+            ),
+            (r#"{"profile": "franka", "calibration": {"cameras": {"a b": "x.json"}}}"#, "\"a b\" is not a camera name"),
+            (
+                r#"{"profile": "franka", "calibration": {"cameras": {"a": "1", "b": "2", "c": "3", "d": "4", "e": "5"}}}"#,
+                "names 5 cameras, at most 4",
+            ),
         ] {
             let e = format!("{:#}", RobotConfig::parse(text).unwrap_err());
             assert!(e.contains(want), "{text}: {e}");

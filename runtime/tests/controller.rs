@@ -395,3 +395,96 @@ fn a_silent_robot_side_stops_the_chunk_within_limits_and_motion_resumes_from_fre
     let (r, _) = run(&mut ctl, &mut back, &request(4, ControlType::Joint, &[joint_wp(moved, -1.0)]));
     assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
 }
+
+/// Ticks as the paced loop does on each robot state: what the robot reports first, then the
+/// tick; `during(tick, state)` changes the state the robot publishes. Returns the first reply.
+fn robot_ticks(
+    ctl: &mut Controller,
+    state: &mut SimState,
+    ticks: u64,
+    mut during: impl FnMut(u64, &mut SimState),
+) -> Option<(ipc_schema::Reply, u64)> {
+    for tick in 0..ticks {
+        during(tick, state);
+        let back = ctl.robot_reports(state);
+        let (cmd, reply) = ctl.tick(state);
+        state.seq += 1;
+        if state.robot_error == ipc_schema::ROBOT_OK {
+            (state.q_rad, state.dq_rad_s, state.finger_m) = (cmd.q_rad, cmd.dq_rad_s, cmd.finger_m);
+        } else {
+            state.dq_rad_s = [0.0; 7]; // the robot stopped itself and holds
+        }
+        if let Some(r) = back.or(reply) {
+            return Some((r, tick));
+        }
+    }
+    None
+}
+
+#[test]
+fn robot_reflexes_reply_after_the_recovery_and_a_failed_one_waits_for_each_clear() {
+    use ipc_schema::{ROBOT_NEEDS_OPERATOR, ROBOT_OK, ROBOT_RECOVERING};
+    let mut ctl = franka(30.0, 80.0).with_reflex_window(10.0);
+    let mut state =
+        SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, paced: 1, ..SimState::default() };
+    ctl.tick(&state);
+
+    // A reflex 400 ms into a chunk; the recovery takes 1 s, then the robot reports OK.
+    ctl.request(&request(1, ControlType::Joint, &ramp(HOME, 0, 0.3, 10)), &state);
+    let (r, tick) = robot_ticks(&mut ctl, &mut state, 5000, |t, s| match t {
+        400 => s.robot_error = ROBOT_RECOVERING,
+        1400 => (s.robot_error, s.reflexes) = (ROBOT_OK, 1),
+        _ => {}
+    })
+    .expect("a reply");
+    assert_eq!(tick, 1400, "the reply waits for the recovery's outcome");
+    assert_eq!(r.status, Status::RecoveredReplanRequired as u32, "{}", r.reason_str());
+    assert!(r.executed > 0 && r.executed < 10, "{}", r.executed);
+    assert!(ctl.fault().is_none());
+
+    // A second reflex within the window: operator_required, latched.
+    ctl.request(&request(2, ControlType::Joint, &ramp(state.q_rad, 0, -0.2, 10)), &state);
+    let (r, _) = robot_ticks(&mut ctl, &mut state, 5000, |t, s| match t {
+        200 => s.robot_error = ROBOT_RECOVERING,
+        700 => (s.robot_error, s.reflexes) = (ROBOT_OK, 2),
+        _ => {}
+    })
+    .expect("a reply");
+    assert_eq!(r.status, Status::OperatorRequired as u32, "{}", r.reason_str());
+    assert!(ctl.fault().is_some());
+    assert!(ctl.clear_fault());
+
+    // A reflex whose recovery fails: the chunk's reply is operator_required, never "recovered".
+    ctl.request(&request(3, ControlType::Joint, &ramp(state.q_rad, 0, 0.2, 10)), &state);
+    let (r, tick) = robot_ticks(&mut ctl, &mut state, 5000, |t, s| match t {
+        300 => s.robot_error = ROBOT_RECOVERING,
+        1300 => s.robot_error = ROBOT_NEEDS_OPERATOR,
+        _ => {}
+    })
+    .expect("a reply");
+    assert_eq!(tick, 1300);
+    assert_eq!(r.status, Status::OperatorRequired as u32, "{}", r.reason_str());
+    assert!(r.reason_str().contains("recovery did not clear it"), "{}", r.reason_str());
+    // Each clear is seen by the robot side (clear_seq grows) and, while its retried recovery
+    // keeps failing, the fault is latched again so that the next clear retries once more.
+    for _ in 0..2 {
+        let before = ctl.tick(&state).0.clear_seq;
+        assert!(ctl.fault().is_some());
+        assert!(ctl.clear_fault());
+        assert_eq!(ctl.tick(&state).0.clear_seq, before + 1);
+        assert!(robot_ticks(&mut ctl, &mut state, 50, |_, _| {}).is_none());
+        assert!(ctl.fault().is_some(), "a robot still waiting for an operator latches the fault again");
+    }
+    // The retried recovery succeeds: chunks run again.
+    assert!(ctl.clear_fault());
+    state.robot_error = ROBOT_OK;
+    robot_ticks(&mut ctl, &mut state, 10, |_, _| {});
+    let (r, _) = {
+        let (reply, _) = ctl.request(&request(4, ControlType::Joint, &ramp(state.q_rad, 0, 0.05, 2)), &state);
+        match reply {
+            Some(r) => (r, 0),
+            None => robot_ticks(&mut ctl, &mut state, 60_000, |_, _| {}).expect("a reply"),
+        }
+    };
+    assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
+}

@@ -16,7 +16,7 @@
 
 use std::collections::HashMap;
 use std::fmt::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use crate::scene::{part_volume, CameraSpec, JointKind, PartSpec, Role, Scene, Shape};
 
@@ -26,8 +26,7 @@ pub const GRIPPER_ACTUATOR: &str = "r2g_gripper";
 /// A fixture's moving body is named `<fixture><MOVING_SUFFIX>`, its joint `<fixture><JOINT_SUFFIX>`.
 pub const MOVING_SUFFIX: &str = "__moving";
 pub const JOINT_SUFFIX: &str = "__joint";
-/// Extra package roots for `package://` mesh paths, searched before the defaults (`:`-separated).
-pub const PACKAGE_PATH_ENV: &str = "R2G_PACKAGE_PATH";
+pub use controllers::mesh::{package_search_path, PACKAGE_PATH_ENV};
 /// Geom groups: drawn visuals and hidden collision shapes.
 const VISUAL_GROUP: u32 = 2;
 const COLLISION_GROUP: u32 = 3;
@@ -54,46 +53,6 @@ fn show_path(p: &[PathBuf]) -> String {
         return "empty".into();
     }
     p.iter().map(|d| d.display().to_string()).collect::<Vec<_>>().join(":")
-}
-
-/// Where `package://NAME/…` is looked up, in order: the folders of `$R2G_PACKAGE_PATH`, then the
-/// `packages/` folder of the URDF's own folder and of each folder above it (so `robots/packages/`,
-/// where `scripts/setup-venv.sh` unpacks the mesh wheels, serves every URDF under `robots/`).
-/// A root serves NAME when it holds a folder NAME.
-pub fn package_search_path(urdf: &Path) -> Vec<PathBuf> {
-    let mut roots: Vec<PathBuf> = std::env::var_os(PACKAGE_PATH_ENV)
-        .map(|v| std::env::split_paths(&v).filter(|p| !p.as_os_str().is_empty()).collect())
-        .unwrap_or_default();
-    let dir = urdf.parent().map(Path::to_path_buf).unwrap_or_default();
-    let dir = std::fs::canonicalize(&dir).unwrap_or(dir);
-    for a in dir.ancestors() {
-        let p = a.join("packages");
-        if p.is_dir() && !roots.contains(&p) {
-            roots.push(p);
-        }
-    }
-    roots
-}
-
-/// The file a URDF mesh filename names (it exists), or why not.
-fn resolve_mesh(filename: &str, urdf: &Path, search: &[PathBuf]) -> Result<PathBuf, String> {
-    let path = if let Some(rest) = filename.strip_prefix("package://") {
-        let (pkg, rel) =
-            rest.split_once('/').ok_or_else(|| "package:// names no file inside the package".to_string())?;
-        let Some(root) = search.iter().find(|r| r.join(pkg).is_dir()) else {
-            return Err(format!("no package '{pkg}' on the search path (set {PACKAGE_PATH_ENV}, or run scripts/setup-venv.sh for the shipped ones)"));
-        };
-        root.join(pkg).join(rel)
-    } else if let Some(abs) = filename.strip_prefix("file://") {
-        PathBuf::from(abs)
-    } else {
-        urdf.parent().unwrap_or(Path::new(".")).join(filename)
-    };
-    if path.is_file() {
-        Ok(path)
-    } else {
-        Err(format!("file {} does not exist", path.display()))
-    }
 }
 
 /// Gains of the joint servos for a joint of the given effort limit.
@@ -248,39 +207,15 @@ impl Writer<'_> {
             detail,
             search: self.search.clone(),
         };
-        let path = resolve_mesh(filename, &self.urdf_path, &self.search).map_err(err)?;
+        let path = controllers::mesh::resolve(filename, &self.urdf_path, &self.search).map_err(err)?;
         let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
         let files: Vec<(PathBuf, Option<[f64; 4]>)> = match ext.as_str() {
             "stl" | "obj" | "msh" => vec![(path.clone(), None)],
-            "dae" => {
-                let dir = path
-                    .with_file_name(format!("{}.parts", path.file_name().and_then(|n| n.to_str()).unwrap_or_default()));
-                let list = dir.join("parts.txt");
-                let text = std::fs::read_to_string(&list).map_err(|_| {
-                    err(format!(
-                        "{} is COLLADA, which MuJoCo cannot read, and has no converted parts ({} is missing): run `.venv/bin/python robots/assets.py convert {}`",
-                        path.display(),
-                        list.display(),
-                        path.parent().unwrap_or(Path::new(".")).display()
-                    ))
-                })?;
-                let mut parts = Vec::new();
-                for line in text.lines().filter(|l| !l.trim().is_empty()) {
-                    let f: Vec<&str> = line.split_whitespace().collect();
-                    let rgba: Vec<f64> = f.iter().skip(1).filter_map(|v| v.parse().ok()).collect();
-                    if f.len() != 5 || rgba.len() != 4 || !dir.join(f[0]).is_file() {
-                        return Err(err(format!(
-                            "{}: bad line '{line}' (want FILE R G B A, FILE beside it)",
-                            list.display()
-                        )));
-                    }
-                    parts.push((dir.join(f[0]), Some([rgba[0], rgba[1], rgba[2], rgba[3]])));
-                }
-                if parts.is_empty() {
-                    return Err(err(format!("{} lists no parts", list.display())));
-                }
-                parts
-            }
+            "dae" => controllers::mesh::converted_parts(&path)
+                .map_err(err)?
+                .into_iter()
+                .map(|(file, rgba)| (file, Some(rgba)))
+                .collect(),
             _ => return Err(err(format!("{}: unknown mesh format '{ext}' (STL, OBJ, MSH or DAE)", path.display()))),
         };
         let mut pieces = Vec::new();

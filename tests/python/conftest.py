@@ -9,9 +9,11 @@ import subprocess
 import sys
 import tempfile
 import time
+import json
 from pathlib import Path
 from typing import Iterator
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -92,3 +94,21 @@ def fr3(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Instance]:
     scene = tmp_path_factory.mktemp("fr3") / "scene.toml"
     scene.write_text(text)
     yield from _instance("lockstep", "f", str(scene))
+
+
+def kin_fk(qs, *args: str) -> list[np.ndarray]:
+    """4x4 base-frame poses from `r2g kin fk` (the controllers crate's kinematics), one per joint
+    vector in ``qs``; ``args``: its options (--robot, --tcp, --frame)."""
+    out = subprocess.run([str(R2G), "kin", "fk", *args], input="".join(json.dumps({"q": list(q)}) + "\n" for q in qs),
+                         capture_output=True, text=True, timeout=60, check=True).stdout.strip().splitlines()
+    poses = []
+    for line in out:
+        a = json.loads(line)
+        x, y, z, w = a["quaternion"]
+        T = np.eye(4)
+        T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+        T[:3, 3] = a["position"]
+        poses.append(T)
+    return poses

@@ -8,6 +8,7 @@ reflex (20 lost command cycles) fires when r2g-control is stopped for 100 ms mid
 from __future__ import annotations
 
 import inspect
+import json
 import os
 import signal
 import socket
@@ -36,7 +37,7 @@ def free_port() -> int:
 class FrankaSim:
     """franka-sim on 127.0.0.1 with its communication-constraint check switched on."""
 
-    def __init__(self, tmp: Path, protocol_version: int = 10) -> None:
+    def __init__(self, tmp: Path, protocol_version: int = 10, gripper: bool = False) -> None:
         if not PEER_VENV.is_file():
             raise RuntimeError(f"{PEER_VENV} missing: run scripts/setup-venv.sh (make test does)")
         model = tmp / "arm.xml"
@@ -54,7 +55,7 @@ class FrankaSim:
         self.log = open(tmp / "franka-sim.log", "w")
         self.proc = subprocess.Popen(
             [str(PEER_VENV), str(ROOT / "fci/franka-sim/serve.py"), "--model", str(model), "--port", str(self.port),
-             "--protocol-version", str(protocol_version)],
+             "--protocol-version", str(protocol_version)] + (["--gripper"] if gripper else []),
             stdout=self.log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
         )
         deadline = time.monotonic() + 60
@@ -62,7 +63,9 @@ class FrankaSim:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"franka-sim exited: {(tmp / 'franka-sim.log').read_text()[-2000:]}")
             try:
-                socket.create_connection(("127.0.0.1", self.port), timeout=0.5).close()
+                # the arm's port, and the hand's (1338, fixed by the protocol) when it serves one
+                for port in [self.port] + ([1338] if gripper else []):
+                    socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
                 return
             except OSError:
                 time.sleep(0.2)
@@ -91,6 +94,10 @@ CONFIG = {
 }
 
 
+WRIST = {"width": 640, "height": 480, "fx": 416.0, "fy": 416.0, "cx": 320.0, "cy": 240.0,
+         "flange_from_camera": [[0, -1, 0, 0.05], [1, 0, 0, 0], [0, 0, 1, 0.02], [0, 0, 0, 1]]}
+
+
 @pytest.fixture(scope="module")
 def peer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[FrankaSim]:
     p = FrankaSim(tmp_path_factory.mktemp("franka-sim"))
@@ -102,7 +109,10 @@ def peer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[FrankaSim]:
 
 @pytest.fixture(scope="module")
 def arm(peer: FrankaSim, tmp_path_factory: pytest.TempPathFactory):
-    cfg = contract.write_config(tmp_path_factory.mktemp("fci"), CONFIG)
+    d = tmp_path_factory.mktemp("fci")
+    # A hand-eye calibration for a wrist camera that sends no frames here: reported, not used.
+    (d / "wrist.json").write_text(json.dumps(WRIST))
+    cfg = contract.write_config(d, dict(CONFIG, calibration={"cameras": {"wrist": "wrist.json"}}))
     for inst in _instance("wall", "fci", GYM, ("--robot-config", cfg, "--fci", peer.address)):
         # The peer starts at its own home pose (elbow straight at joint 2 = 0): move to the gym's
         # start so the contract tests begin where they do on sim-host.
@@ -167,6 +177,12 @@ for _name in SKIPS:
 def test_a_5_s_joint_move_is_executed_and_the_state_says_real_arm(arm) -> None:
     s = robo.get_state([])
     assert s["backend"] == "franka" and s["mode"] == "wall" and s["camera_intrinsics"] == {}
+    # The wrist camera's calibration file is reported though the camera sends nothing; no
+    # intrinsics or extrinsics are made up for it.
+    wrist = robo.get_state()["calibration"]["cameras"]["wrist"]
+    assert wrist["source"].startswith("file: ") and wrist["source"].endswith("wrist.json"), wrist
+    assert wrist["flange_from_camera"] == WRIST["flange_from_camera"] and wrist["fx"] == 416.0
+    assert robo.get_state()["camera_intrinsics"] == {} and robo.get_state()["calibration"]["tcp"]["source"] == "description"
     q = s["joint"]
     goal = [q[0] + 0.3] + q[1:3] + [q[3] + 0.2] + q[4:]
     steps = 100  # 5 s at the default 20 Hz, in chunks of 16
@@ -212,10 +228,11 @@ def chunk_with_a_stall(inst) -> dict:
 
 
 def wait_until_accepting(timeout: float = 10.0) -> None:
+    """No operator fault is latched (a recovered reflex latches none; its reply came only after
+    the robot reported the recovery's end)."""
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if not robo.get_state([])["fault"]:
-            return
+    while robo.get_state([])["fault"]:
+        assert time.monotonic() < deadline, f"still faulted after {timeout} s: {robo.get_state([])['fault']}"
         time.sleep(0.1)
 
 
@@ -265,3 +282,44 @@ def test_a_vanishing_peer_is_a_clear_error_and_the_runtime_holds(tmp_path: Path)
         peer.stop()
     assert up.returncode == 1 and "panicked" not in err, err[-2000:]
     assert "robot" in err and "r2g-fci" in err, err[-2000:]
+
+
+def test_a_protocol_version_mismatch_is_a_clear_error(tmp_path: Path) -> None:
+    """franka-sim announces FCI version 10 (an FR3); r2g-fci told to expect a Panda's version 5
+    refuses to drive it, naming both versions, before anything moves or any port opens."""
+    peer = FrankaSim(tmp_path)
+    try:
+        out = subprocess.run(
+            [str(R2G.parent / "r2g-fci"), str(ROOT / f"gyms/{GYM}/scene.toml"), "--instance", f"py{os.getpid()}ver",
+             "--robot", peer.address, "--fci-version", "5"],
+            capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
+        )
+    finally:
+        peer.stop()
+    assert out.returncode == 1 and "panicked" not in out.stderr, out.stderr[-2000:]
+    assert "speaks FCI version 10" in out.stderr and "5" in out.stderr, out.stderr[-2000:]
+
+
+def test_the_franka_hand_follows_the_gripper_value(tmp_path: Path) -> None:
+    """With --fci-gripper, the waypoints' gripper value drives the Franka Hand (franka-sim's
+    emulated hand on port 1338, libfranka's gripper protocol) from r2g-fci's hand thread, and the
+    measured opening comes back in `gripper` (-1 open ... +1 closed)."""
+    peer = FrankaSim(tmp_path, gripper=True)
+    cfg = contract.write_config(tmp_path, CONFIG)
+    try:
+        for _inst in _instance("wall", "hand", GYM, ("--robot-config", cfg, "--fci", peer.address, "--fci-gripper")):
+            def settle(want: float) -> float:
+                q = robo.get_state([])["joint"]
+                assert robo.post_actions({"actions": [q + [want]] * 4, "type": "joint", "freq": ""}) == 1, contract.fb()
+                deadline = time.monotonic() + 10
+                g = robo.get_state([])["gripper"][0]
+                while abs(g - want) > 0.1 and time.monotonic() < deadline:
+                    time.sleep(0.1)
+                    g = robo.get_state([])["gripper"][0]
+                return g
+
+            assert settle(-1.0) < -0.9
+            assert settle(1.0) > 0.9
+            assert settle(-1.0) < -0.9
+    finally:
+        peer.stop()

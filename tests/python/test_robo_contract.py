@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import robo
+import conftest
 from conftest import R2G, ROOT, Instance, _instance
 
 BLOCK = np.array([0.5, -0.12, 0.04])  # top centre of the red block in pick_block_plate (base frame)
@@ -248,6 +249,15 @@ def test_a_new_process_starts_with_no_feedback(sim) -> None:
     assert f["status"] == "none" and f["submit_to_accept_us"] is None
 
 
+def test_without_files_the_description_tcp_and_the_scene_cameras_are_reported(sim) -> None:
+    c = robo.get_state([])["calibration"]
+    assert c["tcp"]["source"] == "description"
+    assert np.allclose(c["tcp"]["flange_from_tcp"], described_tcp(), atol=1e-9)
+    # Every camera that sends frames (none beside a real arm) without a file is the scene's.
+    scene = {name for name, v in c["cameras"].items() if v == {"source": "scene"}}
+    assert scene == set(robo.get_state()["camera_intrinsics"])
+
+
 # ---------------------------------------------------------------- Franka profile
 
 
@@ -346,6 +356,120 @@ def test_a_bad_robot_config_stops_r2g_up_with_the_reason(tmp_path: Path) -> None
     assert '"profile": "real-arm" is unknown' in out.stderr and "robot.json" in out.stderr
 
 
+# ---------------------------------------------------------------- calibration files
+
+
+def kin_fk(q: list[float], frame: str | None = None) -> np.ndarray:
+    """4x4 base-frame pose of the description's TCP (or `frame`) at q, from `r2g kin fk`."""
+    return conftest.kin_fk([q], *(["--frame", frame] if frame else []))[0]
+
+
+def rotvec_matrix(r: list[float]) -> np.ndarray:
+    v = np.asarray(r, dtype=float)
+    a = np.linalg.norm(v)
+    if a < 1e-12:
+        return np.eye(3)
+    k = v / a
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+def described_tcp() -> np.ndarray:
+    """The description's flange-to-TCP transform."""
+    home = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]
+    return np.linalg.inv(kin_fk(home, "flange")) @ kin_fk(home)
+
+
+def measured_tcp() -> np.ndarray:
+    """The description's, moved 2 mm along tool x and 4 mm along tool z: what a measurement a few
+    millimetres off the nominal hand would give."""
+    return described_tcp() @ np.array([[1, 0, 0, 0.002], [0, 1, 0, 0], [0, 0, 1, 0.004], [0, 0, 0, 1.0]])
+
+CEILING = {"width": 1280, "height": 720, "fx": 910.5, "fy": 911.25, "cx": 640.5, "cy": 360.25,
+           "distortion": [0.1, -0.25, 0.001, -0.002, 0.08],
+           "base_from_camera": [[0, -1, 0, 0.5], [-1, 0, 0, 0], [0, 0, -1, 1.8], [0, 0, 0, 1]],
+           "note": "a camera that sends no frames here"}
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Instance]:
+    """Franka profile with a measured TCP, a valid file for a camera that sends no frames, and a
+    missing and an invalid camera file (relative paths: resolved against robot.json's folder)."""
+    d = tmp_path_factory.mktemp("calibrated")
+    (d / "cal").mkdir()
+    (d / "cal" / "tcp.json").write_text(json.dumps({"flange_from_tcp": measured_tcp().tolist()}))
+    (d / "cal" / "ceiling.json").write_text(json.dumps(CEILING))
+    skewed = dict(CEILING, base_from_camera=[[1, 0.2, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1], [0, 0, 0, 1]])
+    (d / "cal" / "skewed.json").write_text(json.dumps(skewed))
+    cfg = write_config(d, {"profile": "franka", "calibration": {
+        "tcp": "cal/tcp.json",
+        "cameras": {"ceiling": "cal/ceiling.json", "side": "cal/absent.json", "skewed": str(d / "cal" / "skewed.json")},
+    }})
+    for inst in _instance("lockstep", "cc", extra=("--robot-config", cfg)):
+        inst.cal_dir = d / "cal"  # type: ignore[attr-defined]
+        yield inst
+
+
+def test_a_measured_tcp_file_is_the_tcp_of_ee_pose_and_its_targets(calibrated) -> None:
+    s = robo.get_state([])
+    tcp = s["calibration"]["tcp"]
+    measured = measured_tcp()
+    assert tcp["source"] == f"file: {calibrated.cal_dir / 'tcp.json'}", tcp
+    assert np.allclose(tcp["flange_from_tcp"], measured, atol=1e-9), tcp
+
+    def check(state: dict) -> np.ndarray:
+        """FK: the reported ee_pose is flange(q) x the measured transform, 4.5 mm from the
+        description's TCP."""
+        want = kin_fk(state["joint"], "flange") @ measured
+        ee = np.array(state["ee_pose"])
+        assert np.allclose(ee[:3], want[:3, 3], atol=1e-6), (ee, want)
+        assert np.allclose(rotvec_matrix(ee[3:]), want[:3, :3], atol=1e-6)
+        described = kin_fk(state["joint"])[:3, 3]
+        assert abs(np.linalg.norm(ee[:3] - described) - np.hypot(0.002, 0.004)) < 1e-6
+        return ee
+    ee = check(s)
+    # An ee_pose target puts the measured TCP there, not the description's.
+    goal = [0.45, 0.05, 0.3]
+    assert robo.post_actions({"actions": tcp_line(goal, list(ee[3:]), -1.0, 10), "type": "ee_pose", "freq": ""}) == 1, fb()
+    after = check(robo.get_state([]))
+    assert np.linalg.norm(after[:3] - goal) < 0.002, after
+
+
+def test_camera_calibration_files_are_reported_and_missing_ones_say_why(calibrated) -> None:
+    s = robo.get_state()
+    cams = s["calibration"]["cameras"]
+    ceiling = cams["ceiling"]
+    assert ceiling["source"] == f"file: {calibrated.cal_dir / 'ceiling.json'}"
+    assert {k: ceiling[k] for k in ("width", "height", "fx", "fy", "cx", "cy", "distortion", "base_from_camera")} == {
+        k: CEILING[k] for k in ("width", "height", "fx", "fy", "cx", "cy", "distortion", "base_from_camera")}
+    # Reported, but nothing invented: it sends no frames, so it has no image or intrinsics.
+    assert "ceiling" not in s["image"] and "ceiling" not in s["camera_intrinsics"]
+    with pytest.raises(ValueError, match="unknown camera 'ceiling'"):
+        robo.get_state("ceiling")
+    assert cams["side"]["source"] == "missing"
+    assert f"{calibrated.cal_dir / 'absent.json'}: cannot be read" in cams["side"]["reason"], cams["side"]
+    assert cams["skewed"]["source"] == "missing"
+    assert "skewed.json: base_from_camera: the rotation (upper-left 3x3) is not orthonormal" in cams["skewed"]["reason"]
+    # The scene's cameras send frames without a file: their calibration is the scene's.
+    assert cams["agentview"] == {"source": "scene"} and cams["wrist"] == {"source": "scene"}
+    assert set(s["camera_intrinsics"]) == {"agentview", "wrist"}
+
+
+def test_an_unusable_tcp_file_stops_r2g_up_with_the_file_and_field(tmp_path: Path) -> None:
+    bad = {"flange_from_tcp": [[1, 0.05, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.1034], [0, 0, 0, 1]]}
+    (tmp_path / "tcp.json").write_text(json.dumps(bad))
+    for name, want in (("tcp.json", "flange_from_tcp: the rotation (upper-left 3x3) is not orthonormal"),
+                       ("absent.json", "cannot be read")):
+        cfg = write_config(tmp_path, {"profile": "franka", "calibration": {"tcp": name}})
+        out = subprocess.run(
+            [str(R2G), "up", "pick_block_plate", "--instance", "badtcp", "--robot-config", cfg],
+            capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
+        )
+        assert out.returncode != 0
+        assert f"calibration file {tmp_path / name} (calibration.tcp in the robot config): {want}" in out.stderr, out.stderr
+        assert "motion with a wrong TCP is unsafe" in out.stderr, out.stderr
+
+
 def test_the_type_stubs_describe_the_module_as_built() -> None:
     import ast
     import inspect
@@ -389,3 +513,5 @@ def test_live_states_have_exactly_the_keys_the_stubs_promise(sim) -> None:
     assert set(plain["control_feedback"]) == stub_keys("ControlFeedback")
     assert set(plain["effective_safety"]) == stub_keys("EffectiveSafety")
     assert set(plain["camera_intrinsics"]["wrist"]) == stub_keys("Intrinsics")
+    assert set(plain["calibration"]) == stub_keys("Calibration")
+    assert set(plain["calibration"]["tcp"]) == stub_keys("TcpCalibration")

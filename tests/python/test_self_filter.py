@@ -90,9 +90,10 @@ def test_description_matches_urdf():
             want.add(key)
             if (el.get("name") or "").endswith("_envelope"):
                 guards.add(key)
+    described = [c for c in rb.PANDA.capsules if not c.drawn]
     have = {(c.link,) + tuple(round(v, 9) for v in c.xyz + c.rpy) + (round(c.radius, 9), round(c.length, 9))
-            for c in rb.PANDA.capsules}
-    assert have == want and len(have) == len(rb.PANDA.capsules)
+            for c in described}
+    assert have == want and len(have) == len(described)
     assert {(c.link,) + tuple(round(v, 9) for v in c.xyz + c.rpy) + (round(c.radius, 9), round(c.length, 9))
             for c in rb.PANDA.capsules if c.guard} == guards
     # fingers: one box each, the same in both fingers' frames (visuals may be the real meshes)
@@ -113,6 +114,32 @@ def test_description_matches_urdf():
     assert math.isclose(rp.FRANKA_HAND.envelope_behind_tcp, tcp_z - guard.xyz[2], abs_tol=1e-9)
     limit = float(joints["finger_joint1"].find("limit").get("upper"))
     assert math.isclose(2 * limit, rp.GRIPPER_MAX_WIDTH, abs_tol=1e-12)
+
+
+def test_the_drawn_meshes_lie_inside_the_filter_shapes():
+    """Every vertex of every mesh the cameras see (the Panda's and the Franka Hand's visual
+    meshes, as robots/assets.py converted them) lies inside its link's capsules, and each finger's
+    inside the self-filter's finger box, so the filter can remove every robot pixel."""
+    sys.path.insert(0, str(ROOT / "robots"))
+    import envelopes  # noqa: E402
+
+    root = ET.parse(URDF).getroot()
+    drawn = {link.get("name"): Path(el.find("geometry/mesh").get("filename")).stem
+             for link in root.findall("link") for el in link.findall("visual")
+             if el.find("geometry/mesh") is not None}
+    assert set(drawn) >= set(envelopes.LINKS) | {"finger_left", "finger_right"}, drawn
+    for link, mesh in drawn.items():
+        V = envelopes.vertices(mesh)
+        if link.startswith("finger"):
+            c, size = rb.PANDA.filter_finger_box()
+            assert np.all(np.abs(V - c) <= 0.5 * size + 1e-3), link  # within the finger margin
+            continue
+        gap = np.full(len(V), np.inf)
+        for cap in (c for c in rb.PANDA.capsules if c.link == link):
+            R = rb.rpy_to_matrix(cap.rpy)
+            a = np.asarray(cap.xyz) - 0.5 * cap.length * R[:, 2]
+            gap = np.minimum(gap, envelopes.segment_d(V, a, R[:, 2], cap.length) - cap.radius)
+        assert gap.max() <= 0.0, f"{link}: a vertex of {mesh} lies {1e3 * gap.max():.1f} mm outside"
 
 
 def _quat_to_matrix(q):  # x, y, z, w

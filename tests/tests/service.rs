@@ -1,6 +1,7 @@
 //! `r2g service install` (deploy/): the units it writes pass the real `systemd-analyze verify`
 //! without a warning, the control unit's sandbox scores at most 3.0 in `systemd-analyze security
-//! --offline=yes`, the users, folders and iceoryx2 configurations it ships are what the real
+//! --offline=yes` (a real arm's robot side, r2g-fci@, at most 2.0), an instance with `--fci`
+//! has r2g-fci@ as its robot side in place of r2g-sim@ and reaches the arm's address only, the users, folders and iceoryx2 configurations it ships are what the real
 //! systemd-sysusers, systemd-tmpfiles and iceoryx2 make of them, the agent unit and its user
 //! stay out of the control instance's folders (iceoryx2's segments there are writable by whoever
 //! enters them), and bad input is refused with the key and what is accepted, writing nothing.
@@ -93,7 +94,7 @@ fn every_installed_unit_verifies_without_a_warning() {
 fn the_shipped_templates_verify_as_they_are() {
     // What a packager or reviewer runs on the checkout's own files, before any install.
     let dir = integration_tests::root().join("deploy/systemd");
-    for unit in ["r2g@.target", "r2g-control@.service", "r2g-sim@.service", "r2g-agent@.service"] {
+    for unit in ["r2g@.target", "r2g-control@.service", "r2g-sim@.service", "r2g-fci@.service", "r2g-agent@.service"] {
         let out = run(Command::new(tool("systemd-analyze")).arg("verify").arg(dir.join(unit)));
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(
@@ -109,25 +110,25 @@ fn exposure(text: &str) -> Option<f64> {
     line.rsplit(':').next()?.split_whitespace().next()?.parse().ok()
 }
 
+/// `systemd-analyze security --offline=yes` of an installed unit: its overall exposure, printed.
+fn security(dir: &Path, unit: &str) -> f64 {
+    let out = run(Command::new(tool("systemd-analyze"))
+        .args(["security", "--offline=yes", "--no-pager"])
+        .arg(dir.join(unit)));
+    assert!(out.status.success(), "systemd-analyze security {unit} failed");
+    let text = String::from_utf8_lossy(&out.stdout);
+    let score = exposure(&text).unwrap_or_else(|| panic!("no overall exposure for {unit}:\n{text}"));
+    println!("systemd-analyze security --offline=yes {unit}: exposure {score}");
+    score
+}
+
 #[test]
 fn the_control_unit_exposure_is_at_most_3() {
     let (root, name) = installed("security", &[]);
     let dir = root.0.join("etc/systemd/system");
-    let mut scores = Vec::new();
     // The target runs no process: only services have a sandbox to score.
-    for unit in &units(&name)[..3] {
-        let out = run(Command::new(tool("systemd-analyze"))
-            .args(["security", "--offline=yes", "--no-pager"])
-            .arg(dir.join(unit)));
-        assert!(out.status.success(), "systemd-analyze security {unit} failed");
-        let text = String::from_utf8_lossy(&out.stdout);
-        let score = exposure(&text).unwrap_or_else(|| panic!("no overall exposure for {unit}:\n{text}"));
-        scores.push((unit.clone(), score));
-    }
-    for (unit, score) in &scores {
-        println!("systemd-analyze security --offline=yes {unit}: exposure {score}");
-    }
-    assert!(scores[0].1 <= 3.0, "control unit exposure {} > 3.0", scores[0].1);
+    let scores: Vec<f64> = units(&name)[..3].iter().map(|unit| security(&dir, unit)).collect();
+    assert!(scores[0] <= 3.0, "control unit exposure {} > 3.0", scores[0]);
 }
 
 /// The root path of an iceoryx2 configuration file, as iceoryx2's own loader reads it.
@@ -247,11 +248,11 @@ fn users_folders_and_iceoryx2_root_are_what_the_real_tools_make_of_them() {
     }
 }
 
-/// The directives of an installed unit: its template and its drop-ins in order, `%i` replaced,
-/// comments left out, as `(key, value)`.
+/// The directives of an installed unit: its template (`r2g-sim@.service`, `r2g@.target`) and
+/// its drop-ins in order, `%i` replaced, comments left out, as `(key, value)`.
 fn directives(dir: &Path, template: &str, name: &str) -> Vec<(String, String)> {
     let mut files = vec![dir.join(template)];
-    let drop_ins = dir.join(format!("{}{name}.service.d", template.trim_end_matches(".service")));
+    let drop_ins = dir.join(format!("{}.d", template.replacen("@.", &format!("@{name}."), 1)));
     let mut extra: Vec<PathBuf> =
         std::fs::read_dir(&drop_ins).into_iter().flatten().flatten().map(|e| e.path()).collect();
     extra.sort();
@@ -268,8 +269,9 @@ fn directives(dir: &Path, template: &str, name: &str) -> Vec<(String, String)> {
     out
 }
 
+/// The words of every `key=` line, quotes left out.
 fn values<'a>(d: &'a [(String, String)], key: &str) -> Vec<&'a str> {
-    d.iter().filter(|(k, _)| k == key).flat_map(|(_, v)| v.split_whitespace()).collect()
+    d.iter().filter(|(k, _)| k == key).flat_map(|(_, v)| v.split_whitespace()).map(|w| w.trim_matches('"')).collect()
 }
 
 #[test]
@@ -337,6 +339,110 @@ fn the_agent_unit_has_folders_of_its_own() {
     assert!(!String::from_utf8_lossy(&clean.stderr).contains("gpasswd"), "a note without a leftover membership");
 }
 
+/// The arm of the fci tests: a franka-profile robot config (what a real arm needs) in `dir`,
+/// and the install arguments of an instance driving the arm at `address` with its hand.
+fn fci_args(dir: &Path, name: &str, address: &str) -> Vec<String> {
+    let robot = dir.join("franka.json");
+    std::fs::write(&robot, "{\"profile\": \"franka\"}\n").expect("robot config");
+    let robot = robot.to_str().expect("utf-8");
+    [robot, "--gym", GYM, "--instance", name, "--fci", address, "--fci-gripper"].map(String::from).to_vec()
+}
+
+/// That the target and the control unit want (and start after) `side`, not `other`.
+fn robot_side_is(dir: &Path, name: &str, side: &str, other: &str) {
+    let (side, other) = (format!("{side}@{name}.service"), format!("{other}@{name}.service"));
+    for template in ["r2g@.target", "r2g-control@.service"] {
+        let d = directives(dir, template, name);
+        for key in ["Wants", "After"] {
+            let v = values(&d, key);
+            assert!(v.contains(&side.as_str()), "{template} of {name}: {key}= lacks {side}: {v:?}");
+            assert!(!v.contains(&other.as_str()), "{template} of {name}: {key}= names {other}: {v:?}");
+        }
+    }
+}
+
+#[test]
+fn an_fci_instance_runs_r2g_fci_in_place_of_the_simulator() {
+    let root = Temp::new("fci");
+    let name = integration_tests::instance("fci");
+    let args = fci_args(&root.0, &name, "172.16.0.2:1337");
+    let out = install(&root.0.join("root"), &args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(out.status.success(), "install failed: {}", String::from_utf8_lossy(&out.stderr));
+    let dir = root.0.join("root/etc/systemd/system");
+
+    // Every unit of the instance verifies without a word, the fci unit with its drop-in.
+    let fci = format!("r2g-fci@{name}.service");
+    assert!(dir.join(format!("{fci}.d/10-r2g.conf")).is_file(), "no drop-in for {fci}");
+    for unit in [fci.clone(), format!("r2g-control@{name}.service"), format!("r2g@{name}.target")] {
+        let out = run(Command::new(tool("systemd-analyze")).arg("verify").arg(dir.join(&unit)));
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success() && stderr.trim().is_empty(), "systemd-analyze verify {unit}:\n{stderr}");
+    }
+    assert!(!dir.join(format!("r2g-sim@{name}.service.d")).exists(), "an fci instance got a simulator drop-in");
+    robot_side_is(&dir, &name, "r2g-fci", "r2g-sim");
+
+    // The fci unit: the instance's user, shared memory and iceoryx2 root, like the simulator; the
+    // arm's address and nothing else on the network; real-time scheduling allowed.
+    let d = directives(&dir, "r2g-fci@.service", &name);
+    assert_eq!(values(&d, "User"), ["r2g"]);
+    assert_eq!(values(&d, "Group"), ["r2g"]);
+    assert_eq!(values(&d, "BindPaths"), [format!("/run/r2g/{name}/shm:/dev/shm")]);
+    assert_eq!(values(&d, "PartOf"), [format!("r2g@{name}.target"), format!("r2g-control@{name}.service")]);
+    let env = values(&d, "Environment");
+    for want in [
+        format!("R2G_IPC_CONFIG=/etc/r2g/{name}/iceoryx2.toml"),
+        "R2G_FCI_ADDRESS=172.16.0.2:1337".into(),
+        "R2G_FCI_ARGS=--gripper".into(),
+    ] {
+        assert!(env.contains(&want.as_str()), "the fci unit lacks {want}: {env:?}");
+    }
+    assert_eq!(values(&d, "IPAddressDeny"), ["any"]);
+    assert_eq!(values(&d, "IPAddressAllow"), ["172.16.0.2"]);
+    assert_eq!(values(&d, "RestrictAddressFamilies"), ["AF_UNIX", "AF_INET"]);
+    assert!(!values(&d, "PrivateNetwork").contains(&"yes"), "the fci unit has no network");
+    assert_eq!(values(&d, "RestrictRealtime"), ["no"]);
+    assert_eq!(values(&d, "LimitRTPRIO"), ["99"], "r2g-fci's FCI client asks for SCHED_FIFO priority 99");
+    assert_eq!(values(&d, "Restart"), ["on-failure"]);
+
+    // Its sandbox: the simulator's, less PrivateNetwork= and RestrictRealtime=, plus
+    // MemoryDenyWriteExecute= (1.4 when written; the control unit's bound is 3.0).
+    let score = security(&dir, &fci);
+    assert!(score <= 2.0, "r2g-fci@ exposure {score} > 2.0");
+}
+
+#[test]
+fn reinstalling_keeps_or_switches_the_robot_side() {
+    let root = Temp::new("switch");
+    let name = integration_tests::instance("switch");
+    let args = fci_args(&root.0, &name, "172.16.0.2");
+    let r = root.0.join("root");
+    let out = install(&r, &args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(out.status.success(), "install failed");
+    let dir = r.join("etc/systemd/system");
+    let fci_drop_in = dir.join(format!("r2g-fci@{name}.service.d/10-r2g.conf"));
+    let first = std::fs::read_to_string(&fci_drop_in).expect("fci drop-in");
+
+    // instance.toml carries the arm: installing from it alone writes the same fci drop-in.
+    let instance_toml = r.join(format!("etc/r2g/{name}/instance.toml"));
+    let toml = instance_toml.to_str().expect("utf-8");
+    let out = install(&r, &[&args[0], "--gym", GYM, "--instance", &name, "--config", toml]);
+    assert!(out.status.success(), "reinstall failed");
+    assert_eq!(std::fs::read_to_string(&fci_drop_in).expect("fci drop-in"), first);
+    robot_side_is(&dir, &name, "r2g-fci", "r2g-sim");
+
+    // Back to the simulator: its drop-in replaces the fci one, which is removed, with a note.
+    let out = install(&r, &[GYM, "--instance", &name]);
+    assert!(out.status.success(), "install as a simulator failed");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains(&format!("stop r2g-fci@{name}.service")), "no note on the old robot side:\n{stderr}");
+    assert!(!fci_drop_in.parent().expect("folder").exists(), "the fci drop-in is left");
+    assert!(dir.join(format!("r2g-sim@{name}.service.d/10-r2g.conf")).is_file());
+    robot_side_is(&dir, &name, "r2g-sim", "r2g-fci");
+    let target = dir.join(format!("r2g@{name}.target"));
+    let out = run(Command::new(tool("systemd-analyze")).arg("verify").arg(&target));
+    assert!(out.status.success() && out.stderr.is_empty(), "systemd-analyze verify {}", target.display());
+}
+
 #[test]
 fn the_instance_file_installs_the_same_again() {
     let values = Temp::new("values");
@@ -382,6 +488,41 @@ fn a_robot_config_with_its_gym_is_copied_into_the_instance() {
     assert!(drop_in.contains("/gyms/pick_block_plate/scene.toml"), "{drop_in}");
 }
 
+#[test]
+fn the_calibration_files_are_copied_beside_the_robot_config() {
+    let inputs = Temp::new("calcfg");
+    std::fs::create_dir_all(inputs.0.join("cal")).expect("cal dir");
+    let tcp = "{\"flange_from_tcp\": [[1,0,0,0],[0,1,0,0],[0,0,1,0.105],[0,0,0,1]]}\n";
+    std::fs::write(inputs.0.join("cal/tcp.json"), tcp).expect("tcp file");
+    let robot = inputs.0.join("franka.json");
+    let text =
+        r#"{"profile": "franka", "calibration": {"tcp": "cal/tcp.json", "cameras": {"wrist": "cal/none.json"}}}"#;
+    std::fs::write(&robot, text).expect("robot config");
+    let root = Temp::new("calroot");
+    let name = integration_tests::instance("cal");
+    let out = install(&root.0, &[robot.to_str().expect("utf-8"), "--gym", GYM, "--instance", &name]);
+    assert!(out.status.success(), "install failed");
+    // the missing camera file: a note, and the instance reports it missing
+    assert!(String::from_utf8_lossy(&out.stderr).contains("calibration of camera wrist"), "no note");
+    let etc = root.0.join(format!("etc/r2g/{name}"));
+    assert_eq!(std::fs::read_to_string(etc.join("calibration/tcp.json")).expect("tcp copy"), tcp);
+    assert!(!etc.join("calibration/camera-wrist.json").exists());
+    // the copied config names the copies, relative to itself
+    let copied: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(etc.join("robot.json")).expect("copy")).expect("json");
+    assert_eq!(copied["calibration"]["tcp"], "calibration/tcp.json");
+    assert_eq!(copied["calibration"]["cameras"]["wrist"], "calibration/camera-wrist.json");
+    assert_eq!(copied["profile"], "franka");
+
+    // a TCP file that is not there: refused (r2g-control would not start), nothing written
+    std::fs::remove_file(inputs.0.join("cal/tcp.json")).expect("remove");
+    let root = Temp::new("calroot2");
+    let out = install(&root.0, &[robot.to_str().expect("utf-8"), "--gym", GYM, "--instance", &name]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("calibration.tcp"), "no reason");
+    assert!(entries(&root.0).is_empty(), "{:?}", entries(&root.0));
+}
+
 /// Every file and folder under `dir`.
 fn entries(dir: &Path) -> Vec<PathBuf> {
     let mut out = Vec::new();
@@ -409,6 +550,15 @@ fn bad_input_is_refused_with_the_key_and_writes_nothing() {
     let table = file("table.toml", "[control]\ncpu = 0\n");
     let robot = file("robot.json", "{\"profile\": \"simulation\"}\n");
     let llm = file("llm.toml", "agent_llm = \"/nonexistent/endpoint.toml\"\n");
+    let franka = file("franka.json", "{\"profile\": \"franka\"}\n");
+    let hand_only = file("hand.toml", "fci_gripper = true\n");
+    // A binaries' folder with everything but r2g-fci.
+    let no_fci_bin = inputs.0.join("no-fci");
+    std::fs::create_dir_all(&no_fci_bin).expect("no-fci dir");
+    for b in ["r2g", "r2g-control", "r2g-sim"] {
+        std::os::unix::fs::symlink(integration_tests::bin_dir().join(b), no_fci_bin.join(b)).expect("symlink");
+    }
+    let no_fci_bin = no_fci_bin.display().to_string();
     let empty_bin = inputs.0.join("bin");
     std::fs::create_dir_all(&empty_bin).expect("bin dir");
     let empty_bin = empty_bin.display().to_string();
@@ -429,6 +579,21 @@ fn bad_input_is_refused_with_the_key_and_writes_nothing() {
         (vec![GYM, "--instance", "bad name"], vec!["--instance \"bad name\"", "A-Z a-z 0-9 _ -"]),
         (vec![GYM, "--instance", &long], vec!["--instance", "1-32 characters"]),
         (vec![GYM, "--instance", "ok1", "--bin-dir", &empty_bin], vec!["has no executable r2g", "--bin-dir"]),
+        // A real arm: what `r2g up --fci` refuses (the simulation profile), an address the unit's
+        // firewall cannot take, a hand without an arm, and a build without r2g-fci.
+        (
+            vec![GYM, "--instance", "ok1", "--fci", "172.16.0.2"],
+            vec!["r2g-fci for the arm at 172.16.0.2", "wall mode with the franka profile", "--gym"],
+        ),
+        (
+            vec![&franka, "--gym", GYM, "--instance", "ok1", "--fci", "panda.lab"],
+            vec!["--fci \"panda.lab\"", "IPv4 address", "not a host name"],
+        ),
+        (vec![GYM, "--instance", "ok1", "--config", &hand_only], vec!["fci_gripper (in", "needs fci"]),
+        (
+            vec![&franka, "--gym", GYM, "--instance", "ok1", "--fci", "172.16.0.2", "--bin-dir", &no_fci_bin],
+            vec!["has no executable r2g-fci"],
+        ),
     ];
     for (args, wanted) in cases {
         let root = Temp::new("bad");
@@ -441,4 +606,11 @@ fn bad_input_is_refused_with_the_key_and_writes_nothing() {
         let left = entries(&root.0);
         assert!(left.is_empty(), "{args:?} wrote {left:?}");
     }
+    // As for `r2g up`, the hand needs the arm: refused by the argument parser (exit status 2).
+    let root = Temp::new("bad");
+    let out = install(&root.0, &[GYM, "--instance", "ok1", "--fci-gripper"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "--fci-gripper without --fci must be refused: {stderr}");
+    assert!(stderr.contains("--fci <FCI>"), "{stderr}");
+    assert!(entries(&root.0).is_empty(), "--fci-gripper without --fci wrote something");
 }

@@ -9,7 +9,7 @@ import socket
 import struct
 from typing import Any
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 6
 _FD = 4
 _sock: socket.socket | None = None
 

@@ -5,8 +5,11 @@ the capsules and boxes that make up its shape), forward kinematics from the meas
 Segmentation uses the mask to drop the arm and the hand before it looks for objects, so no part
 of the robot is ever reported as an object. Everything is in the robot base frame. The numbers
 follow the project's Panda description (``robots/panda/panda.urdf``, which a stage program cannot
-read, hence the copy here; a test compares the two). The shapes are those the simulator draws: a
-capsule is a segment of ``length`` along its local z with radius ``radius`` around it.
+read, hence the copy here; a test compares the two). The shapes are the description's collision
+capsules and finger boxes, and capsules that enclose the meshes the cameras see (the real Panda
+and Franka Hand meshes, drawn since they replaced the capsules in the pictures; made by
+``robots/envelopes.py``, checked against every mesh vertex by a test). A capsule is a segment of
+``length`` along its local z with radius ``radius`` around it.
 """
 
 from __future__ import annotations
@@ -52,7 +55,8 @@ class RobotCapsule:
     """A capsule of a link: centre ``xyz`` and orientation ``rpy`` in the link frame, its straight
     part ``length`` long along the local z, radius ``radius``. ``guard``: the rounded guard across
     the fingertips, whose middle passes through the space between the fingers (there only its
-    surface counts, so that a held object inside it is not taken for the robot)."""
+    surface counts, so that a held object inside it is not taken for the robot). ``drawn``: not
+    in the description; it encloses (part of) the link's drawn mesh."""
 
     link: str
     xyz: tuple[float, float, float]
@@ -60,6 +64,7 @@ class RobotCapsule:
     radius: float
     length: float
     guard: bool = False
+    drawn: bool = False
 
 
 @dataclass(frozen=True)
@@ -68,7 +73,9 @@ class RobotDescription:
     gripper. ``arm_joints``: the measured joints in ``state["joint"]`` order; ``finger_joints``:
     the prismatic fingers, each opened by half the finger opening; ``finger_box_center`` and
     ``finger_box_size``: the box of each finger in its own frame (its inner face at local y = 0);
-    ``tcp_link``: the frame of ``ee_pose``; ``hand``: the gripper model (stroke, guard)."""
+    ``tcp_link``: the frame of ``ee_pose``; ``hand``: the gripper model (stroke, guard);
+    ``finger_drawn_size``: the box of a finger's drawn mesh (inner face and base as the finger
+    box's, centred across), which the self-filter's finger box grows to."""
 
     joints: tuple[RobotJoint, ...]
     capsules: tuple[RobotCapsule, ...]
@@ -79,6 +86,18 @@ class RobotDescription:
     tcp_link: str
     base_link: str = "link0"
     hand: HandGeometry = FRANKA_HAND
+    finger_drawn_size: Optional[tuple[float, float, float]] = None
+
+    def filter_finger_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """Centre and size of the finger box the self-filter uses: the finger box grown to the
+        drawn finger, its inner face (local y = 0) and base kept."""
+        size = np.asarray(self.finger_box_size, dtype=float)
+        centre = np.asarray(self.finger_box_center, dtype=float)
+        if self.finger_drawn_size is None:
+            return centre, size
+        grown = np.maximum(size, self.finger_drawn_size)
+        lo = centre - 0.5 * size
+        return np.array([centre[0], lo[1] + 0.5 * grown[1], lo[2] + 0.5 * grown[2]]), grown
 
     def joint(self, name: str) -> RobotJoint:
         """The joint called ``name``."""
@@ -129,12 +148,25 @@ PANDA = RobotDescription(
         RobotCapsule("hand", (0.0, 0.0, 0.04), (_HALF_PI, 0.0, 0.0), 0.04, 0.1),
         RobotCapsule("hand", (0.0, 0.0, 0.1034 - FRANKA_HAND.envelope_behind_tcp), (_HALF_PI, 0.0, 0.0),
                      FRANKA_HAND.envelope_radius, 2.0 * FRANKA_HAND.envelope_half_length, guard=True),
+        # the drawn meshes (robots/envelopes.py)
+        RobotCapsule("link0", (-0.0286, 0.0, 0.0331), (0.0, 2.1561, -3.1396), 0.106, 0.068, drawn=True),
+        RobotCapsule("link1", (-0.0004, -0.0273, -0.07), (0.0, 0.3511, -1.5483), 0.078, 0.152, drawn=True),
+        RobotCapsule("link2", (-0.0003, -0.0701, 0.0269), (0.0, 1.217, 1.5702), 0.078, 0.154, drawn=True),
+        RobotCapsule("link3", (0.0423, 0.0219, -0.0411), (0.0, 2.3066, -2.6701), 0.071, 0.123, drawn=True),
+        RobotCapsule("link4", (-0.0406, 0.0418, 0.0215), (0.0, 1.9167, 2.3407), 0.071, 0.125, drawn=True),
+        RobotCapsule("link5", (0.0, 0.0371, -0.1204), (0.0, 0.2137, 1.5769), 0.069, 0.251, drawn=True),
+        RobotCapsule("link6", (0.0957, -0.0235, -0.0025), (0.0, 1.3988, -2.2154), 0.049, 0.038, drawn=True),
+        RobotCapsule("link6", (0.0403, 0.0129, 0.0075), (0.0, 1.3939, -2.7826), 0.060, 0.082, drawn=True),
+        RobotCapsule("link7", (0.0138, 0.014, 0.0771), (0.0, 1.7212, -2.3607), 0.051, 0.054, drawn=True),
+        RobotCapsule("hand", (0.0, -0.0766, 0.013), (0.0, 0.0949, -1.5712), 0.031, 0.064, drawn=True),
+        RobotCapsule("hand", (0.0006, 0.0234, 0.0271), (0.0, 1.5424, 1.6038), 0.046, 0.101, drawn=True),
     ),
     arm_joints=("joint1", "joint2", "joint3", "joint4", "joint5", "joint6", "joint7"),
     finger_joints=("finger_joint1", "finger_joint2"),
     finger_box_center=_FINGER_CENTER,
     finger_box_size=_FINGER_SIZE,
     tcp_link="hand_tcp",
+    finger_drawn_size=(0.0212, 0.0265, 0.054),
 )
 """The Franka Panda with the Franka Hand, as the gyms simulate it (robots/panda/panda.urdf)."""
 
@@ -275,8 +307,8 @@ def _on_robot(P: np.ndarray, s: RobotShapes, robot: RobotDescription, margin: fl
         inside = np.where(between[:, None], (g <= guard_margin) & (g >= -margin), g <= margin)
         hit |= np.any(inside, axis=1)
     # fingers: each finger's box in its own frame, its inner face (local y low) grown less
-    c = np.asarray(robot.finger_box_center, dtype=float)
-    h = 0.5 * np.asarray(robot.finger_box_size, dtype=float)
+    c, size = robot.filter_finger_box()
+    h = 0.5 * size
     lo_b = c - h - np.array([margin, finger_margin, margin])
     hi_b = c + h + margin
     for f in s.fingers:
@@ -313,7 +345,7 @@ def robot_mask(points: ArrayLike, joints: Sequence[float], gripper: Optional[flo
     b = s.a + s.u * s.length[:, None]
     lo = np.minimum(s.a, b) - reach
     hi = np.maximum(s.a, b) + reach
-    fsize = float(np.linalg.norm(robot.finger_box_size)) + margin
+    fsize = float(np.linalg.norm(robot.filter_finger_box()[1])) + margin
     corners = [f[:3, 3] for f in s.fingers]
     lo = np.vstack([lo] + [c - fsize for c in corners]).min(axis=0)
     hi = np.vstack([hi] + [c + fsize for c in corners]).max(axis=0)
