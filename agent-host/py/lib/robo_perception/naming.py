@@ -80,12 +80,12 @@ def shape_name(extents: ArrayLike, fill: float, hollow: bool = False, thin_fill:
     than at the rim; ``thin_fill``: fill ratio of the points in the (long side, height) plane,
     used for slabs standing on edge. Returns one of box, cylinder, bowl, plate, flat, bar,
     panel, object. A *bar* is a small part much longer than it is wide (a handle, a rail, a
-    peg); a *panel* is a thin slab standing on its edge that is not round (a door, a drawer
+    peg; up to 6 cm wide, which a bar handle on its standoff posts is, seen from above); a *panel* is a thin slab standing on its edge that is not round (a door, a drawer
     front, a wall).
     """
     a, b, h = (float(x) for x in extents)
     d = sorted((a, b, h), reverse=True)
-    if 0.04 <= d[0] <= 0.25 and d[1] <= 0.05 and d[2] <= 0.025 and d[0] >= 2.5 * d[1]:
+    if 0.04 <= d[0] <= 0.25 and d[1] <= 0.06 and d[2] <= 0.025 and d[0] >= 2.5 * d[1]:
         return "bar"
     round_top = fill < 0.9 and b > 0.6 * a
     if h < 0.02 and a > 0.03:

@@ -196,11 +196,13 @@ def _color_modes(chroma: np.ndarray, bin_size: float, min_points: int) -> Option
     return np.argmin(d, axis=1)
 
 
-def _absorb_fragments(parts: list, P: np.ndarray, C: np.ndarray, voxel: float) -> list:
+def _absorb_fragments(parts: list, P: np.ndarray, C: np.ndarray, voxel: float, reach: float = 2.0,
+                      drop: bool = True) -> list:
     """After a colour split: a fragment (under 400 points and under 15 % of the largest piece)
     whose colour is the same as or next to that of a larger touching piece joins it (a shaded
     strip of an orange bowl inside a blue one is "brown", not another object); one under 150
-    points that joins nothing is dropped (mixed pixels where two objects meet, not an object)."""
+    points that joins nothing is dropped (mixed pixels where two objects meet, not an object).
+    ``reach``: how near (in voxels) counts as touching; ``drop``: whether lone small fragments go."""
     if len(parts) < 2:
         return parts
     sizes = [len(p) for p in parts]
@@ -210,7 +212,7 @@ def _absorb_fragments(parts: list, P: np.ndarray, C: np.ndarray, voxel: float) -
     for i in sorted(range(len(parts)), key=lambda k: sizes[k]):
         if not (sizes[i] < 400 and sizes[i] < 0.15 * big) or out[i] is None:
             continue
-        best, bd = None, 2.0 * voxel
+        best, bd = None, reach * voxel
         frag = P[out[i]]
         for j, other in enumerate(out):
             if j == i or other is None or len(other) <= sizes[i] or _color_similarity(names[i], names[j]) == 0.0:
@@ -222,26 +224,41 @@ def _absorb_fragments(parts: list, P: np.ndarray, C: np.ndarray, voxel: float) -
         if best is not None:
             out[best] = np.concatenate([out[best], out[i]])
             out[i] = None
-        elif sizes[i] < 150:
+        elif drop and sizes[i] < 150:
             out[i] = None
     return [p for p in out if p is not None]
+
+
+SLIVER_POINTS = 150
+"""Held pieces smaller than this (points) join a piece within 2 cm of them (see `_merge_held`)."""
 
 
 def _merge_held(pieces: list, P: np.ndarray, C: np.ndarray, view: CameraView, hand: HandGeometry
                 ) -> tuple[list, list]:
     """Flag the pieces lying between the fingers and merge those of the same colour (a held
-    object is cut into pieces where the fingers and their guard hide it)."""
+    object is cut into pieces where the fingers hide it; chromaticity, so that a shaded part of
+    it counts as its colour); a small sliver seen between the pads (fewer than
+    ``SLIVER_POINTS``, its colour unreliable in the fingers' shadow) joins the piece within 2 cm
+    of it, the rest of the object the pads hold."""
     T = pose_to_matrix(view.ee_pose)
     half_open = 0.5 * gripper_to_width(view.gripper if view.gripper is not None else -1.0, hand)
-    held = []
+    held, slivers = [], []
     for part in pieces:
         L = (P[part] - T[:3, 3]) @ T[:3, :3]
         inside = ((np.abs(L[:, 0]) < 0.04) & (np.abs(L[:, 1]) < half_open + 0.006)
                   & (L[:, 2] > -0.06) & (L[:, 2] < 0.05))
         held.append(bool(half_open > 0.003 and inside.mean() > 0.5))
+        slivers.append(bool(inside.mean() > 0.5 and len(part) < SLIVER_POINTS))
     groups: dict = {}
     out, flags = [], []
-    for part, h in zip(pieces, held):
+    big = [p for p, sl in zip(pieces, slivers) if not sl]
+    for part, h, sl in zip(pieces, held, slivers):
+        if sl and big:
+            # a sliver between the pads (the pads hide the rest of what they hold): part of the
+            # piece within 2 cm of it, if any
+            gaps = [float(np.sqrt(((P[part][:, None, :] - P[b][None, ::7, :]) ** 2).sum(-1)).min()) for b in big]
+            if min(gaps) < 0.02:
+                continue
         if h:
             name = color_name(C[part])
             if name in ("white", "grey"):
@@ -250,13 +267,25 @@ def _merge_held(pieces: list, P: np.ndarray, C: np.ndarray, view: CameraView, ha
                 r = np.hypot(L[:, 0], L[:, 2] + hand.envelope_behind_tcp)
                 if np.mean(np.abs(r - hand.envelope_radius) < 0.004) > 0.8:
                     continue
-            groups.setdefault(name, []).append(part)
+            c = _chromaticity(C[part]).mean(axis=0)
+            key = next((k for k in groups if float(np.hypot(*(np.asarray(k) - c))) < 0.06), tuple(c))
+            groups.setdefault(key, []).append(part)
         else:
             out.append(part)
             flags.append(False)
     for parts in groups.values():
         out.append(np.concatenate(parts))
         flags.append(True)
+    # the slivers skipped above join their nearest piece
+    for part, sl in zip(pieces, slivers):
+        if sl and big:
+            gaps = [float(np.sqrt(((P[part][:, None, :] - P[o][None, ::7, :]) ** 2).sum(-1)).min()) for o in out]
+            k = int(np.argmin(gaps))
+            if gaps[k] < 0.02:
+                out[k] = np.concatenate([out[k], part])
+            else:
+                out.append(part)
+                flags.append(False)
     return out, flags
 
 
@@ -358,6 +387,9 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
                 if float(ho[part].max()) > max_object_height:
                     continue  # reaches up out of the workspace of objects: the robot arm
                 pieces.append(part)
+    # a small piece of an object that something in front (a finger) cut off from the rest: it
+    # joins a larger piece of a similar colour within 3 cm
+    pieces = _absorb_fragments(pieces, Po, Co, voxel, reach=0.03 / voxel, drop=False)
     hand_view = next((v for v in views if v.ee_pose is not None), None)
     if ignore_hand and hand_view is not None and pieces:
         pieces, _ = _merge_held(pieces, Po, Co, hand_view, hand)
