@@ -202,13 +202,12 @@ def control_pid(inst) -> int:
     raise AssertionError(f"no r2g-control among {kids}")
 
 
-def chunk_with_a_stall(inst) -> dict:
-    """Posts a 3 s chunk and stops r2g-control for 100 ms in its middle: the robot gets no
-    command for 100 cycles and its communication reflex (20 lost cycles) stops the motion."""
+def chunk_with_a_pause(pid: int, at_s: float, pause_s: float | None, joint_by: float) -> dict:
+    """Posts a 3 s chunk (16 waypoints at 5 Hz turning joint 1 by ``joint_by``) and, ``at_s``
+    into it, stops process ``pid`` (one this test started) for ``pause_s`` (None: until the
+    chunk ends, then it is continued). Returns post_actions' value and the control feedback."""
     q = robo.get_state([])["joint"]
-    sign = 1.0 if q[0] < 0 else -1.0
-    steps = 16
-    ramp = [[q[0] + sign * 0.25 * (k + 1) / steps] + q[1:] + [1.0] for k in range(steps)]
+    ramp = [[q[0] + joint_by * (k + 1) / 16] + q[1:] + [1.0] for k in range(16)]
     result: dict = {}
 
     def post() -> None:
@@ -217,14 +216,24 @@ def chunk_with_a_stall(inst) -> dict:
 
     t = threading.Thread(target=post)
     t.start()
-    time.sleep(1.2)
-    pid = control_pid(inst)
+    time.sleep(at_s)
     os.kill(pid, signal.SIGSTOP)
-    time.sleep(0.1)
-    os.kill(pid, signal.SIGCONT)
-    t.join(timeout=30)
-    assert not t.is_alive()
+    try:
+        if pause_s is not None:
+            time.sleep(pause_s)
+            os.kill(pid, signal.SIGCONT)
+        t.join(timeout=30)
+        assert not t.is_alive()
+    finally:
+        os.kill(pid, signal.SIGCONT)
     return result
+
+
+def chunk_with_a_stall(inst) -> dict:
+    """Stops r2g-control for 100 ms in the middle of a 3 s chunk: the robot gets no command for
+    100 cycles and its communication reflex (20 lost cycles) stops the motion."""
+    sign = 1.0 if robo.get_state([])["joint"][0] < 0 else -1.0
+    return chunk_with_a_pause(control_pid(inst), 1.2, 0.1, sign * 0.25)
 
 
 def wait_until_accepting(timeout: float = 10.0) -> None:
@@ -321,5 +330,21 @@ def test_the_franka_hand_follows_the_gripper_value(tmp_path: Path) -> None:
             assert settle(-1.0) < -0.9
             assert settle(1.0) > 0.9
             assert settle(-1.0) < -0.9
+    finally:
+        peer.stop()
+
+
+def test_a_missing_state_stream_fails_the_chunk_and_the_arm_holds(tmp_path: Path) -> None:
+    """franka-sim stopped (SIGSTOP: its connection stays open, its states stop) while a chunk
+    runs: the runtime notices the silence, fails the chunk with the reason and holds; nothing
+    panics. The peer is continued afterwards and stopped by this test."""
+    peer = FrankaSim(tmp_path)
+    cfg = contract.write_config(tmp_path, CONFIG)
+    try:
+        for _inst in _instance("wall", "mute", GYM, ("--robot-config", cfg, "--fci", peer.address)):
+            result = chunk_with_a_pause(peer.proc.pid, 1.0, None, 0.2)
+            assert result["ret"] == 0 and result["fb"]["status"] == "failed", result
+            assert "published no state" in result["fb"]["reason"], result
+            assert 0 < result["fb"]["executed"] < 16, result
     finally:
         peer.stop()
