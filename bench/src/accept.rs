@@ -8,10 +8,12 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
-use ipc_schema::{ControlType, Mode, Qos, Reply, Request, RequestKind, Services, Status, MAX_CHUNK, WAYPOINT_LEN};
+use ipc_schema::{ControlType, Qos, Reply, Request, RequestKind, Services, Status, MAX_CHUNK, WAYPOINT_LEN};
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 use runtime::controller::Controller;
-use runtime::launch::{self, Instance, UpOptions};
+use runtime::launch;
+
+use crate::tick::Beside;
 use runtime::stats::Histogram;
 use serde_json::{json, Value};
 
@@ -203,65 +205,19 @@ fn one_run(
     accepted: &[[f64; WAYPOINT_LEN]],
     rejected: &[[f64; WAYPOINT_LEN]],
 ) -> anyhow::Result<(Value, Value, ClientFigures)> {
-    let scene = launch::resolve_scene(GYM)?;
     let tag = if on_tick { "tick" } else { "planner" };
-    let stats_path = std::env::temp_dir().join(format!("r2g-bench-accept-{tag}-{}.json", std::process::id()));
-    let instance = format!("acc{tag}{}", std::process::id());
     // r2g-control reads it at start; set before any thread of this run exists.
     if on_tick {
         std::env::set_var("R2G_ACCEPT_ON_TICK", "1");
     } else {
         std::env::remove_var("R2G_ACCEPT_ON_TICK");
     }
-    let opts = UpOptions {
-        scene,
-        instance,
-        mode: Mode::Wall,
-        render_hz: 10.0,
-        control_args: vec![
-            "--duration-s".into(),
-            (seconds + 3.0).to_string(),
-            "--stats-out".into(),
-            stats_path.display().to_string(),
-        ],
-        sim_args: Vec::new(),
-        robot_config: None,
-        ready_timeout: Duration::from_secs(60),
-    };
-    // As in `bench tick`: the bare loop beside the runtime, same CPU, one FIFO priority above.
-    let cpu = runtime::rt::last_cpu();
-    let window = Duration::from_secs_f64(seconds + 3.5);
-    let baseline = std::thread::spawn(move || {
-        let setup = runtime::rt::setup(Some(81), cpu);
-        (runtime::baseline_loop(window, 1_000_000, 0).to_json(), setup.warning())
-    });
-    let mut inst = match Instance::up(&opts) {
-        Ok(i) => i,
-        Err(e) => {
-            let _ = baseline.join();
-            return Err(e);
-        }
-    };
+    let run = Beside::start(&format!("acc{tag}{}", std::process::id()), &launch::resolve_scene(GYM)?, seconds);
     std::env::remove_var("R2G_ACCEPT_ON_TICK");
-    let figures = client(&inst.name, seconds, accepted, rejected);
-    let (mut base, warning) = baseline.join().map_err(|_| anyhow::anyhow!("the baseline loop panicked"))?;
-    if let Some(w) = warning {
-        eprintln!("bench accept: {w}");
-    }
-    let status = inst.wait_control(Duration::from_secs_f64(seconds + 60.0));
-    inst.stop();
-    let figures = figures?;
-    let status = status?;
-    if !status.success() {
-        bail!("r2g-control ended with {status}");
-    }
-    let text = std::fs::read_to_string(&stats_path).with_context(|| format!("reading {}", stats_path.display()))?;
-    let _ = std::fs::remove_file(&stats_path);
-    let rt: Value = serde_json::from_str(&text)?;
-    if let Some(o) = base.as_object_mut() {
-        o.remove("tick_allocations");
-        o.remove("tick_pool_allocations");
-    }
+    let run = run?;
+    let figures = client(&run.inst.name, seconds, accepted, rejected);
+    let (rt, base) = run.finish("bench accept");
+    let (rt, figures) = (rt?, figures?);
     Ok((rt, base, figures))
 }
 

@@ -52,83 +52,105 @@ pub(crate) fn script_figures(out: &std::process::Output, script: &str) -> anyhow
     serde_json::from_str(last).with_context(|| format!("the last line of {script} is not JSON: {last}"))
 }
 
+/// The runtime (wall mode, rendering on) for `seconds` with its figures written at the end, and
+/// the bare loop beside it over the same window (start-up included), on the same CPU at one
+/// FIFO priority above it: the runtime can never delay it, so it is the best wake-up this
+/// machine gives under the same load. Used by `bench tick` and `bench accept`.
+pub(crate) struct Beside {
+    pub inst: Instance,
+    baseline: std::thread::JoinHandle<(Value, Option<String>)>,
+    stats_path: std::path::PathBuf,
+    seconds: f64,
+}
+
+impl Beside {
+    pub(crate) fn start(instance: &str, scene: &std::path::Path, seconds: f64) -> anyhow::Result<Self> {
+        let stats_path = std::env::temp_dir().join(format!("r2g-bench-{instance}.json"));
+        let opts = UpOptions {
+            scene: scene.to_path_buf(),
+            instance: instance.to_string(),
+            mode: Mode::Wall,
+            render_hz: 10.0,
+            control_args: vec![
+                // A few seconds more than the measured window, which starts once the instance is up.
+                "--duration-s".into(),
+                (seconds + 3.0).to_string(),
+                "--stats-out".into(),
+                stats_path.display().to_string(),
+            ],
+            sim_args: Vec::new(),
+            robot_config: None,
+            ready_timeout: Duration::from_secs(60),
+        };
+        let cpu = runtime::rt::last_cpu();
+        let window = Duration::from_secs_f64(seconds + 3.5);
+        let baseline = std::thread::spawn(move || {
+            let setup = runtime::rt::setup(Some(81), cpu);
+            let warning = setup.warning();
+            (runtime::baseline_loop(window, 1_000_000, 0).to_json(), warning)
+        });
+        match Instance::up(&opts) {
+            Ok(inst) => Ok(Self { inst, baseline, stats_path, seconds }),
+            Err(e) => {
+                let _ = baseline.join();
+                Err(e)
+            }
+        }
+    }
+
+    /// Waits for both loops to end and stops the instance; the runtime's figures (an error if
+    /// r2g-control failed) and the baseline's (without allocation figures: it does no work and
+    /// runs without the counting allocator).
+    pub(crate) fn finish(mut self, bench: &str) -> (anyhow::Result<Value>, Value) {
+        let (mut base, warning) = self.baseline.join().unwrap_or_else(|_| (json!({"error": "panicked"}), None));
+        if let Some(w) = warning {
+            eprintln!("{bench}: {w}");
+        }
+        if let Some(o) = base.as_object_mut() {
+            o.remove("tick_allocations");
+            o.remove("tick_pool_allocations");
+        }
+        let status = self.inst.wait_control(Duration::from_secs_f64(self.seconds + 60.0));
+        self.inst.stop();
+        let rt = (|| {
+            let status = status?;
+            if !status.success() {
+                bail!("r2g-control ended with {status}");
+            }
+            let path = &self.stats_path;
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            let _ = std::fs::remove_file(path);
+            Ok(serde_json::from_str(&text)?)
+        })();
+        (rt, base)
+    }
+}
+
 pub fn run(gym: &str, seconds: f64, client: bool) -> anyhow::Result<Value> {
     if !(seconds.is_finite() && seconds > 0.0 && seconds <= 3600.0) {
         bail!("--seconds must be in (0, 3600]");
     }
-    let scene = launch::resolve_scene(gym)?;
-    let stats_path = std::env::temp_dir().join(format!("r2g-bench-tick-{}.json", std::process::id()));
-    let instance = format!("bench{}", std::process::id());
     eprintln!("bench tick: runtime for {seconds} s (gym {gym}, wall mode, rendering on)...");
-    let opts = UpOptions {
-        scene,
-        instance,
-        mode: Mode::Wall,
-        render_hz: 10.0,
-        control_args: vec![
-            // A few seconds more than the measured window, which starts once the instance is up.
-            "--duration-s".into(),
-            (seconds + 3.0).to_string(),
-            "--stats-out".into(),
-            stats_path.display().to_string(),
-        ],
-        sim_args: Vec::new(),
-        robot_config: None,
-        ready_timeout: Duration::from_secs(60),
-    };
     let load = if client { Some(python_script("load_client.py")?) } else { None };
-    // The bare loop runs beside the runtime over the same window (start-up included), under the
-    // same load, on the same CPU, at one FIFO priority above it: the runtime can never delay it,
-    // so it is the best wake-up this machine gives under this load.
-    let cpu = runtime::rt::last_cpu();
-    let window = Duration::from_secs_f64(seconds + 3.5);
-    let baseline = std::thread::spawn(move || {
-        let setup = runtime::rt::setup(Some(81), cpu);
-        let warning = setup.warning();
-        (runtime::baseline_loop(window, 1_000_000, 0).to_json(), warning)
-    });
-    let mut inst = match Instance::up(&opts) {
-        Ok(i) => i,
-        Err(e) => {
-            let _ = baseline.join();
-            return Err(e);
-        }
-    };
+    let run = Beside::start(&format!("bench{}", std::process::id()), &launch::resolve_scene(gym)?, seconds)?;
     // The agent stops by itself when the runtime does.
     let agent = match &load {
         Some((python, script)) => Some(
             python_command(python, script)
                 .arg(format!("{}", seconds + 5.0))
-                .env("R2G_INSTANCE", &inst.name)
+                .env("R2G_INSTANCE", &run.inst.name)
                 .stdout(std::process::Stdio::piped())
                 .spawn()
                 .context("starting the Python agent load")?,
         ),
         None => None,
     };
-    let (mut base, warning) = baseline.join().map_err(|_| anyhow::anyhow!("the baseline loop panicked"))?;
-    if let Some(w) = warning {
-        eprintln!("bench tick: {w}");
-    }
-    let status = inst.wait_control(Duration::from_secs_f64(seconds + 60.0));
+    let (rt, base) = run.finish("bench tick");
     let agent_figures = agent.and_then(|a| a.wait_with_output().ok()).map(|o| {
         let text = String::from_utf8_lossy(&o.stdout).into_owned();
         text.lines().last().and_then(|l| serde_json::from_str::<Value>(l).ok()).unwrap_or(json!({"error": text}))
     });
-    inst.stop();
-    let status = status?;
-    if !status.success() {
-        bail!("r2g-control ended with {status}");
-    }
-    let text = std::fs::read_to_string(&stats_path).with_context(|| format!("reading {}", stats_path.display()))?;
-    let _ = std::fs::remove_file(&stats_path);
-    let rt: Value = serde_json::from_str(&text)?;
-
-    // The baseline does no work and runs without the counting allocator: no allocation figures.
-    if let Some(o) = base.as_object_mut() {
-        o.remove("tick_allocations");
-        o.remove("tick_pool_allocations");
-    }
+    let rt = rt?;
 
     let row = |name: &str, s: &Value| {
         vec![
