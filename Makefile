@@ -43,8 +43,10 @@ $(STAMPS)/venv: requirements.txt fci/franka-sim/requirements.txt scripts/setup-v
 build: venv
 	cargo build --release --workspace --locked
 
+# The Python extensions: `robo` (agents) and `r2g_camera` (the camera host's publisher).
 robo: build
 	VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH $(VENV)/bin/maturin develop --release --locked -m robo/Cargo.toml
+	VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH $(VENV)/bin/maturin develop --release --locked -m camera-host/Cargo.toml
 
 bench-tick: build
 	target/release/r2g bench tick --seconds 10

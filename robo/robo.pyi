@@ -34,6 +34,20 @@ class ControlFeedback(TypedDict):
     """Microseconds from submission until the runtime accepted the chunk; None if not accepted."""
     submit_to_first_motion_us: Optional[float]
     """Microseconds from submission until measured motion began; None if the arm did not move."""
+    grasp: Grasp
+    """What the gripper knows about its fingers now (not tied to the last request)."""
+
+class Grasp(TypedDict):
+    """The gripper's own view of its fingers."""
+
+    status: Literal["unknown", "moving", "at_target", "holding", "blocked_opening"]
+    """"holding": the fingers stopped short of a closing command (something is between them);
+    "at_target": they reached the commanded opening (nothing held, or the object was lost)."""
+    object_detected: bool
+    """status == "holding"."""
+    gripper_fault: Optional[str]
+    """A gripper that is its own device (Robotiq 2F-85) reports a fault or went silent: the arm
+    holds and chunks are refused until it is clear. None otherwise."""
 
 class Intrinsics(TypedDict):
     """Pinhole intrinsics in pixels, for the image size actually returned."""

@@ -2,6 +2,9 @@
 # Installs the Debian packages the project needs, only those missing (idempotent).
 set -euo pipefail
 pkgs=(libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libopengl0 pkg-config fonts-dejavu-core g++ chromium)
+# socat makes the pseudo-terminal pairs the Robotiq gripper tests talk Modbus RTU over;
+# pyrealsense2 (the camera host) links libusb-1.0.
+pkgs+=(socat libusb-1.0-0)
 if ! python3 -m venv --help >/dev/null 2>&1; then pkgs+=(python3-venv); fi
 if ! command -v python3 >/dev/null 2>&1; then pkgs+=(python3 python3-venv); fi
 # systemd-analyze, systemd-sysusers and systemd-tmpfiles check deploy/ (tests/tests/service.rs).

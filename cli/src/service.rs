@@ -15,6 +15,8 @@ const CONTROL_UNIT: &str = include_str!("../../deploy/systemd/r2g-control@.servi
 const SIM_UNIT: &str = include_str!("../../deploy/systemd/r2g-sim@.service");
 const FCI_UNIT: &str = include_str!("../../deploy/systemd/r2g-fci@.service");
 const AGENT_UNIT: &str = include_str!("../../deploy/systemd/r2g-agent@.service");
+const ROBOTIQ_UNIT: &str = include_str!("../../deploy/systemd/r2g-robotiq@.service");
+const CAMERA_UNIT: &str = include_str!("../../deploy/systemd/r2g-camera@.service");
 const TARGET_UNIT: &str = include_str!("../../deploy/systemd/r2g@.target");
 const SYSUSERS: &str = include_str!("../../deploy/sysusers.d/r2g.conf");
 const TMPFILES: &str = include_str!("../../deploy/tmpfiles.d/r2g@.conf");
@@ -506,7 +508,12 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
     let scene = check_path("the scene", &absolute(&scene)?)?;
     let robot_json = std::fs::read_to_string(&robot_config)
         .with_context(|| format!("robot config {}: cannot read it", robot_config.display()))?;
-    runtime::RobotConfig::parse(&robot_json).with_context(|| format!("robot config {}", robot_config.display()))?;
+    let config =
+        runtime::RobotConfig::parse(&robot_json).with_context(|| format!("robot config {}", robot_config.display()))?;
+    let robotiq = match &config.gripper {
+        runtime::robot_config::Gripper::Robotiq2f85(r) => Some(r.clone()),
+        _ => None,
+    };
     let (robot_json, calibration) = instance_calibration(&robot_config, &robot_json, &mut notes)?;
 
     // The robot side, refused where `r2g up` would refuse it (the control unit runs in wall mode).
@@ -542,7 +549,11 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
             absolute(exe.parent().context("r2g has no folder")?)?
         }
     };
-    for b in ["r2g", "r2g-control", "r2g-sim", side.program()] {
+    let mut programs = vec!["r2g", "r2g-control", "r2g-sim", side.program()];
+    if robotiq.is_some() {
+        programs.push("r2g-robotiq");
+    }
+    for b in programs {
         if !is_executable(&bin_dir.join(b)) {
             bail!(
                 "{} has no executable {b}: build the workspace (cargo build --release) or pass --bin-dir with the \
@@ -604,6 +615,8 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
         ("r2g-sim@.service", SIM_UNIT),
         ("r2g-fci@.service", FCI_UNIT),
         ("r2g-agent@.service", AGENT_UNIT),
+        ("r2g-robotiq@.service", ROBOTIQ_UNIT),
+        ("r2g-camera@.service", CAMERA_UNIT),
     ];
     for (file, text) in templates {
         let rel = PathBuf::from("etc/systemd/system").join(file);
@@ -662,12 +675,59 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
          {checkout}CPUAffinity={others}\n",
         s.agent_episodes
     );
-    let drop_ins = [
-        (format!("r2g@{name}.target"), format!("{header}{wants_side}")),
+    // The devices the robot config names, each in a unit of its own that may open only its
+    // device: the gripper's serial port, a camera's USB or V4L2 node.
+    let mut device_units: Vec<(String, String)> = Vec::new();
+    if let Some(r) = &robotiq {
+        device_units.push((
+            format!("r2g-robotiq@{name}.service"),
+            format!(
+                "{header}[Service]\n{checkout}CPUAffinity={others}\nDeviceAllow={} rw\n",
+                systemd_path(&r.port.display().to_string())?
+            ),
+        ));
+    }
+    if !config.cameras.is_empty() {
+        let root = Path::new(&gyms).parent().context("the gyms folder has no parent")?;
+        // The venv's own path (its interpreter may be a link into a Python elsewhere).
+        let venv_python = root.join(".venv/bin/python");
+        if let Err(e) = absolute(&venv_python).and_then(|p| check_path("the venv's interpreter", &p)) {
+            notes.push(format!("the camera hosts of instance {name} cannot start their Python: {e:#}"));
+        }
+        let python = systemd_path(&venv_python.display().to_string())?;
+        let host = check_path("the camera host", &absolute(&root.join("camera-host/py/r2g_camera_host.py"))?)?;
+        for c in &config.cameras {
+            let device = match &c.driver {
+                runtime::robot_config::CameraDriver::Realsense { .. } => "DeviceAllow=char-usb_device rw\n".to_string(),
+                runtime::robot_config::CameraDriver::Uvc { device } => {
+                    format!("DeviceAllow={} rw\n", systemd_path(&device.display().to_string())?)
+                }
+                runtime::robot_config::CameraDriver::Replay { .. } => String::new(),
+            };
+            let args: Vec<String> = c.host_args().iter().map(|a| systemd_path(a)).collect::<anyhow::Result<_>>()?;
+            device_units.push((
+                format!("r2g-camera@{name}.{}.service", c.name),
+                format!(
+                    "{header}[Unit]\nPartOf=r2g@{name}.target r2g-control@{name}.service\nAfter=r2g-control@{name}.service\n\
+                     [Service]\nEnvironment=R2G_IPC_CONFIG=/etc/r2g/{name}/iceoryx2.toml R2G_INSTANCE={name}\n\
+                     Environment=\"R2G_PYTHON={python}\" \"R2G_CAMERA_HOST={host}\"\n\
+                     Environment=\"R2G_CAMERA_ARGS={}\"\n\
+                     ExecStartPre=+/usr/bin/systemd-tmpfiles --create /etc/tmpfiles.d/r2g-{name}.conf\n\
+                     BindPaths=/run/r2g/{name}/shm:/dev/shm\nReadWritePaths=/run/r2g/{name}/iceoryx2\n\
+                     CPUAffinity={others}\n{device}",
+                    args.join(" ")
+                ),
+            ));
+        }
+    }
+    let wants_devices: String = device_units.iter().map(|(u, _)| format!("Wants={u}\n")).collect();
+    let mut drop_ins = vec![
+        (format!("r2g@{name}.target"), format!("{header}{wants_side}{wants_devices}")),
         (format!("r2g-control@{name}.service"), control),
         (format!("{}@{name}.service", side.program()), robot),
         (format!("r2g-agent@{name}.service"), agent),
     ];
+    drop_ins.extend(device_units);
     for (unit, text) in drop_ins {
         files.push((PathBuf::from(format!("etc/systemd/system/{unit}.d/10-r2g.conf")), text));
     }
@@ -743,6 +803,15 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
         }
     }
     Ok(Plan { instance: name.to_string(), files, stale, notes })
+}
+
+/// A value written into a unit file: no whitespace, quotes, backslashes, `%` or `$` (which systemd
+/// would split, unquote or expand).
+fn systemd_path(v: &str) -> anyhow::Result<String> {
+    if v.is_empty() || v.chars().any(|c| c.is_whitespace() || c.is_control() || "\"'\\%$".contains(c)) {
+        bail!("{v:?} cannot be written into a unit file (no spaces, quotes, backslashes, % or $)");
+    }
+    Ok(v.to_string())
 }
 
 /// Whether /etc/group (its text) lists user r2g-agent as a member of group r2g.

@@ -39,6 +39,9 @@ pub struct Options {
     pub realtime: bool,
     /// The FCI version the robot must speak (5: Panda, 10: FR3); None takes what it announces.
     pub fci_version: Option<u16>,
+    /// Cameras that camera hosts publish for this instance (the robot config's `cameras`): the
+    /// camera list agents read names them.
+    pub cameras: Vec<String>,
 }
 
 /// What one run measured.
@@ -85,12 +88,19 @@ struct Ports {
     state: Pub<SimState>,
     command: Sub<JointCommand>,
     info: Pub<SimInfo>,
+    sim_info: SimInfo,
     wake: iceoryx2::port::listener::Listener<iceoryx2::prelude::ipc::Service>,
     control_wake: iceoryx2::port::notifier::Notifier<iceoryx2::prelude::ipc::Service>,
 }
 
 impl Ports {
-    fn open(instance: &str) -> anyhow::Result<Self> {
+    fn open(instance: &str, cameras: &[String]) -> anyhow::Result<Self> {
+        let mut sim_info =
+            SimInfo { schema: ipc_schema::SCHEMA_VERSION, physics_timestep_s: 1e-3, ..Default::default() };
+        for (i, c) in cameras.iter().take(ipc_schema::MAX_CAMERAS).enumerate() {
+            ipc_schema::write_str(&mut sim_info.camera_names[i], c);
+            sim_info.camera_count += 1;
+        }
         let services = Services::new(instance)?;
         let node = ipc_schema::node(&process::sim_node(instance))?;
         let state = ipc_schema::open_or_create_pubsub::<SimState>(&node, &services.sim_state(), Qos::STREAM)?
@@ -105,17 +115,14 @@ impl Ports {
         let wake = ipc_schema::open_or_create_event(&node, &services.sim_wake())?.listener_builder().create()?;
         let control_wake =
             ipc_schema::open_or_create_event(&node, &services.control_wake())?.notifier_builder().create()?;
-        Ok(Self { _node: node, state, command, info, wake, control_wake })
+        Ok(Self { _node: node, state, command, info, sim_info, wake, control_wake })
     }
 
     fn publish(&self, s: SimState) -> anyhow::Result<()> {
         if s.seq % 200 == 1 {
-            // Late subscribers (agents) learn from it that this robot side has no cameras.
-            self.info.send_copy(SimInfo {
-                schema: ipc_schema::SCHEMA_VERSION,
-                physics_timestep_s: 1e-3,
-                ..Default::default()
-            })?;
+            // Late subscribers (agents) learn from it which cameras exist: those of the camera
+            // hosts (this robot side renders none).
+            self.info.send_copy(self.sim_info)?;
         }
         self.state.send_copy(s)?;
         self.control_wake.notify()?;
@@ -236,7 +243,7 @@ pub fn run(opts: &Options) -> anyhow::Result<Stats> {
         .map_err(|e| anyhow::anyhow!("setting the collision thresholds: {e}"))?;
 
     ipc_schema::cleanup_dead_nodes();
-    let ports = Ports::open(&opts.instance)?;
+    let ports = Ports::open(&opts.instance, &opts.cameras)?;
     let mut side = Side::new(&model, hand);
     eprintln!(
         "r2g-fci: instance '{}' serves the robot at {} (FCI version {})",

@@ -25,7 +25,8 @@ struct Args {
     /// Robot cycles in a row without the runtime's answer before the motion is finished.
     #[arg(long, default_value_t = 10)]
     max_missed: u32,
-    /// Also drive the Franka Hand (port 1338 of the same host).
+    /// Also drive the Franka Hand (port 1338 of the same host); the robot config's
+    /// `"gripper": {"driver": "franka_hand"}` does the same.
     #[arg(long)]
     gripper: bool,
     /// Require a real-time kernel.
@@ -69,7 +70,8 @@ fn run() -> anyhow::Result<()> {
         reflexes: config.reflexes,
         reply_budget_us: a.reply_budget_us,
         max_missed: a.max_missed,
-        gripper: a.gripper,
+        gripper: a.gripper || config.gripper == runtime::robot_config::Gripper::FrankaHand,
+        cameras: config.cameras.iter().map(|c| c.name.clone()).collect(),
         realtime: a.realtime,
         fci_version: a.fci_version,
     };

@@ -10,7 +10,7 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 /// Bumped whenever any payload below changes layout or meaning. Every service carries it as
 /// the attribute `r2g.schema`; a process of another build is refused when it connects.
-pub const SCHEMA_VERSION: u32 = 6;
+pub const SCHEMA_VERSION: u32 = 7;
 /// Attribute key that carries [`SCHEMA_VERSION`] on every service.
 pub const SCHEMA_ATTRIBUTE: &str = "r2g.schema";
 
@@ -300,7 +300,7 @@ pub enum Mode {
 /// runtime → agents, once per tick (wall) or per step (lockstep): the agent-facing robot state.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
-#[type_name("r2g.RobotState.v3")]
+#[type_name("r2g.RobotState.v4")]
 pub struct RobotState {
     pub seq: u64,
     /// Simulated (or robot) time of the underlying measurement, s.
@@ -327,8 +327,86 @@ pub struct RobotState {
     pub external_force_n: [f64; 3],
     /// Bit 0: an `operator_required` fault holds the arm (Franka profile). Bit 1: the robot
     /// side publishes no state; the arm holds and requests are refused until it is back.
+    /// Bit 2: the gripper reports a fault or went silent ([`RobotState::gripper_error`]); the
+    /// arm holds and chunks are refused until it is clear.
     pub fault: u32,
+    /// What the gripper knows about its fingers: a `GRASP_*` value.
+    pub grasp: u32,
+    /// The gripper's fault in words while fault bit 2 is set, NUL-padded UTF-8.
+    pub gripper_error: [[u8; 32]; ERROR_TEXT_LEN / 32],
+}
+
+impl RobotState {
+    /// [`RobotState::gripper_error`] as text (up to the first NUL).
+    pub fn gripper_error_str(&self) -> &str {
+        read_str(self.gripper_error.as_flattened())
+    }
+}
+
+/// [`RobotState::grasp`] / [`GripperState::grasp`]: nothing known (no report yet).
+pub const GRASP_UNKNOWN: u32 = 0;
+/// The fingers move toward their target.
+pub const GRASP_MOVING: u32 = 1;
+/// The fingers stopped at their target: nothing between them.
+pub const GRASP_AT_TARGET: u32 = 2;
+/// The fingers stopped short of their target while closing: an object is held.
+pub const GRASP_HOLDING: u32 = 3;
+/// The fingers stopped short of their target while opening (something blocks them).
+pub const GRASP_BLOCKED_OPENING: u32 = 4;
+
+/// The name `control_feedback["grasp"]["status"]` shows for a `GRASP_*` value.
+pub fn grasp_name(grasp: u32) -> &'static str {
+    match grasp {
+        GRASP_MOVING => "moving",
+        GRASP_AT_TARGET => "at_target",
+        GRASP_HOLDING => "holding",
+        GRASP_BLOCKED_OPENING => "blocked_opening",
+        _ => "unknown",
+    }
+}
+
+/// gripper driver → runtime, at the driver's polling rate: a gripper that is its own device (a
+/// Robotiq 2F-85 on a serial port), published by its driver process (`r2g-robotiq`). The
+/// runtime takes the fingers from here instead of from [`SimState`] and holds the arm while
+/// [`GripperState::fault`] is set or the stream is silent.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+#[type_name("r2g.GripperState.v1")]
+pub struct GripperState {
+    pub seq: u64,
+    /// CLOCK_MONOTONIC when the driver read this from the device, ns.
+    pub published_ns: u64,
+    /// Opening of one finger, m (as [`SimState::finger_m`]).
+    pub finger_m: f64,
+    pub finger_max_m: f64,
+    /// A `GRASP_*` value, from the device's own object detection.
+    pub grasp: u32,
+    /// 0: the gripper acts on commands. Otherwise the device's fault code, or
+    /// [`GRIPPER_LINK_LOST`] / [`GRIPPER_NOT_READY`]; the text says which in words.
+    pub fault: u32,
+    /// Motor current, mA (0 when the device does not report it).
+    pub current_ma: f64,
+    /// Round trip of the last poll (request sent → answer parsed), µs.
+    pub poll_us: u32,
     pub _pad: u32,
+    pub fault_text: [[u8; 32]; ERROR_TEXT_LEN / 32],
+}
+
+/// [`GripperState::fault`]: the driver lost the device (port gone, no answer, bad frames).
+pub const GRIPPER_LINK_LOST: u32 = 0x100;
+/// [`GripperState::fault`]: the device is not activated yet (or reactivating).
+pub const GRIPPER_NOT_READY: u32 = 0x101;
+
+impl GripperState {
+    /// [`GripperState::fault_text`] as text (up to the first NUL).
+    pub fn fault_str(&self) -> &str {
+        read_str(self.fault_text.as_flattened())
+    }
+
+    /// Sets [`GripperState::fault_text`], cut at a character boundary to fit.
+    pub fn set_fault_text(&mut self, text: &str) {
+        write_str(self.fault_text.as_flattened_mut(), text);
+    }
 }
 
 /// runtime → agents, published once with history: the limits in force (`effective_safety`).
@@ -571,6 +649,10 @@ impl Services {
     }
     pub fn reply(&self) -> String {
         self.name("control/reply")
+    }
+    /// A gripper driven by its own process (`r2g-robotiq`) publishes its state here.
+    pub fn gripper_state(&self) -> String {
+        self.name("gripper/state")
     }
     pub fn camera(&self, camera: &str) -> String {
         self.name(&format!("camera/{camera}"))

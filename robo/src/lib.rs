@@ -230,6 +230,11 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>, raw: boo
     let fault = (state.fault != 0).then(|| {
         if state.fault & 2 != 0 {
             "the robot side publishes no state (it stopped or hangs): the arm holds its last command and chunks are refused until it is back".to_string()
+        } else if state.fault & 4 != 0 && state.fault & 1 == 0 {
+            format!(
+                "the gripper reports a fault ({}): the arm holds and chunks are refused until the gripper is clear",
+                state.gripper_error_str()
+            )
         } else if feedback.status == "operator_required" {
             feedback.reason.clone()
         } else {
@@ -300,6 +305,13 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>, raw: boo
     fb.set_item("final_joint_error_rad", feedback.final_joint_error_rad)?;
     fb.set_item("submit_to_accept_us", feedback.accepted_us)?;
     fb.set_item("submit_to_first_motion_us", feedback.first_motion_us)?;
+    // What the gripper knows about its fingers now: a Robotiq's own object detection, or for
+    // grippers without one the fingers stopped short of a closing command.
+    let grasp = PyDict::new(py);
+    grasp.set_item("status", ipc_schema::grasp_name(state.grasp))?;
+    grasp.set_item("object_detected", state.grasp == ipc_schema::GRASP_HOLDING)?;
+    grasp.set_item("gripper_fault", (state.fault & 4 != 0).then(|| state.gripper_error_str().to_string()))?;
+    fb.set_item("grasp", grasp)?;
     out.set_item("control_feedback", fb)?;
     out.set_item("effective_safety", effective_safety(py, info.as_ref())?)?;
     out.set_item("calibration", calibration(py, info.as_ref(), &names)?)?;

@@ -40,6 +40,14 @@ pub enum Mount {
 /// One camera's calibration as its file gives it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CameraCalibration {
+    /// None: the file gives no intrinsics; the camera host takes the device's own.
+    pub intrinsics: Option<Intrinsics>,
+    pub mount: Mount,
+}
+
+/// A camera's measured pinhole model.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Intrinsics {
     pub width: u32,
     pub height: u32,
     pub fx: f64,
@@ -48,7 +56,6 @@ pub struct CameraCalibration {
     pub cy: f64,
     /// OpenCV order: k1, k2, p1, p2, k3. None: the file gives none (undistorted images).
     pub distortion: Option<[f64; 5]>,
-    pub mount: Mount,
 }
 
 /// A camera named in the config: its file and what came of reading it.
@@ -115,13 +122,18 @@ impl Calibration {
                         Mount::Base(m) => ("base_from_camera", m),
                         Mount::Flange(m) => ("flange_from_camera", m),
                     };
-                    json!({
-                        "source": format!("file: {}", c.path.display()),
-                        "width": k.width, "height": k.height,
-                        "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
-                        "distortion": k.distortion,
-                        key: m,
-                    })
+                    let mut e = json!({"source": format!("file: {}", c.path.display()), key: m});
+                    match k.intrinsics {
+                        Some(i) => {
+                            let more = json!({"width": i.width, "height": i.height, "fx": i.fx, "fy": i.fy,
+                                "cx": i.cx, "cy": i.cy, "distortion": i.distortion});
+                            e.as_object_mut().into_iter().zip(more.as_object()).for_each(|(e, more)| {
+                                e.extend(more.clone());
+                            });
+                        }
+                        None => e["intrinsics"] = json!("device"),
+                    }
+                    e
                 }
                 Err(reason) => json!({"source": "missing", "reason": reason}),
             };
@@ -253,6 +265,21 @@ pub fn parse_camera(text: &str) -> Result<CameraCalibration, String> {
             _ => Err(format!("{key} must be a whole number of pixels, 1 to {MAX_IMAGE_SIDE}, got {}", shown(v))),
         }
     };
+    const INTRINSICS: [&str; 7] = ["width", "height", "fx", "fy", "cx", "cy", "distortion"];
+    let given = INTRINSICS.iter().filter(|k| m.contains_key(**k)).count();
+    let mount =
+        match (m.contains_key("base_from_camera"), m.contains_key("flange_from_camera")) {
+            (true, false) => Mount::Base(transform(m, "base_from_camera", MAX_CAMERA_OFFSET_M)?),
+            (false, true) => Mount::Flange(transform(m, "flange_from_camera", MAX_CAMERA_OFFSET_M)?),
+            _ => return Err(
+                "needs exactly one of base_from_camera (a fixed camera) or flange_from_camera (a camera on the hand)"
+                    .into(),
+            ),
+        };
+    if given == 0 {
+        // The device's own intrinsics (the camera host reads them).
+        return Ok(CameraCalibration { intrinsics: None, mount });
+    }
     let (width, height) = (side("width")?, side("height")?);
     let focal = |key: &str| -> Result<f64, String> {
         let x = number(m, key)?;
@@ -288,16 +315,7 @@ pub fn parse_camera(text: &str) -> Result<CameraCalibration, String> {
             Some(d)
         }
     };
-    let mount =
-        match (m.contains_key("base_from_camera"), m.contains_key("flange_from_camera")) {
-            (true, false) => Mount::Base(transform(m, "base_from_camera", MAX_CAMERA_OFFSET_M)?),
-            (false, true) => Mount::Flange(transform(m, "flange_from_camera", MAX_CAMERA_OFFSET_M)?),
-            _ => return Err(
-                "needs exactly one of base_from_camera (a fixed camera) or flange_from_camera (a camera on the hand)"
-                    .into(),
-            ),
-        };
-    Ok(CameraCalibration { width, height, fx, fy, cx, cy, distortion, mount })
+    Ok(CameraCalibration { intrinsics: Some(Intrinsics { width, height, fx, fy, cx, cy, distortion }), mount })
 }
 
 #[cfg(test)]
@@ -316,14 +334,18 @@ mod tests {
         let t = parse_tcp(TCP).unwrap();
         assert_eq!(t[2][3], 0.1074);
         let c = parse_camera(CAMERA).unwrap();
-        assert_eq!((c.width, c.height, c.fx, c.cy), (640, 480, 600.5, 239.8));
-        assert_eq!(c.distortion, Some([0.1, -0.2, 0.0, 0.0, 0.05]));
+        let k = c.intrinsics.unwrap();
+        assert_eq!((k.width, k.height, k.fx, k.cy), (640, 480, 600.5, 239.8));
+        assert_eq!(k.distortion, Some([0.1, -0.2, 0.0, 0.0, 0.05]));
         assert!(matches!(c.mount, Mount::Flange(m) if m[0][3] == 0.05));
         let fixed = CAMERA
             .replace("flange_from_camera", "base_from_camera")
             .replace(r#""distortion": [0.1, -0.2, 0, 0, 0.05],"#, "");
         let c = parse_camera(&fixed).unwrap();
-        assert!(matches!(c.mount, Mount::Base(_)) && c.distortion.is_none());
+        assert!(matches!(c.mount, Mount::Base(_)) && c.intrinsics.unwrap().distortion.is_none());
+        // Without intrinsics: the device's own are used.
+        let device = r#"{"base_from_camera": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1], [0, 0, 0, 1]]}"#;
+        assert_eq!(parse_camera(device).unwrap().intrinsics, None);
     }
 
     #[test]
@@ -423,13 +445,15 @@ mod tests {
         let long = PathBuf::from(format!("/{}", "\\".repeat(crate::robot_config::MAX_CALIBRATION_PATH - 1)));
         let worst = [[-1.234_567_890_123_456_7e-300; 4]; 4];
         let k = CameraCalibration {
-            width: 16384,
-            height: 16384,
-            fx: -1.234_567_890_123_456_7e-300,
-            fy: -1.234_567_890_123_456_7e-300,
-            cx: -1.234_567_890_123_456_7e-300,
-            cy: -1.234_567_890_123_456_7e-300,
-            distortion: Some([-1.234_567_890_123_456_7e-300; 5]),
+            intrinsics: Some(Intrinsics {
+                width: 16384,
+                height: 16384,
+                fx: -1.234_567_890_123_456_7e-300,
+                fy: -1.234_567_890_123_456_7e-300,
+                cx: -1.234_567_890_123_456_7e-300,
+                cy: -1.234_567_890_123_456_7e-300,
+                distortion: Some([-1.234_567_890_123_456_7e-300; 5]),
+            }),
             mount: Mount::Flange(worst),
         };
         let cameras = (0..ipc_schema::MAX_CAMERAS)

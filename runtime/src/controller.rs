@@ -128,6 +128,12 @@ pub struct Controller {
     robot_reflexes: u64,
     /// Clock time of the last reflex the robot reported, s.
     last_reflex_s: Option<f64>,
+    /// A gripper of its own (a driver process, not the robot side) reports a fault or is silent:
+    /// the arm holds and chunks are refused while this lasts.
+    gripper_fault: Option<Text>,
+    /// What that gripper's own object detection says (a `GRASP_*` value); None: no such gripper,
+    /// the controller judges the grasp from the measured fingers.
+    gripper_grasp: Option<u32>,
     /// A second reflex within this many seconds of the previous one needs an operator.
     reflex_window_s: f64,
 }
@@ -243,6 +249,8 @@ impl Controller {
             restarted: false,
             clear_seq: 0,
             robot_error: ipc_schema::ROBOT_OK,
+            gripper_fault: None,
+            gripper_grasp: None,
             robot_reflexes: 0,
             last_reflex_s: None,
             reflex_window_s: 10.0,
@@ -275,15 +283,19 @@ impl Controller {
     }
 
     /// The operator's fault reset (only ever called for a request from the operator socket).
-    /// Returns whether there was a fault to clear.
+    /// Returns whether there was a fault to clear. A gripper in a fault counts: the reset goes to
+    /// its driver too (through [`JointCommand::clear_seq`]), which then reactivates it; the
+    /// gripper's fault itself ends only when the gripper reports clear.
     pub fn clear_fault(&mut self) -> bool {
         let had = self.fault.take().is_some();
         if had {
-            // A robot side waiting for an operator tries its recovery again.
-            self.clear_seq += 1;
             self.last_reflex_s = None;
         }
-        had
+        if had || self.gripper_fault.is_some() {
+            // A robot side (or gripper) waiting for an operator tries its recovery again.
+            self.clear_seq += 1;
+        }
+        had || self.gripper_fault.is_some()
     }
 
     /// A second reflex of the robot within `window_s` of the previous one needs an operator.
@@ -383,6 +395,59 @@ impl Controller {
             return self.stop_reply.take();
         }
         None
+    }
+
+    /// What a gripper driven by its own process reports, every tick before [`Self::tick`]: its
+    /// object detection, and its fault (or silence) in words, None when it acts on commands. A
+    /// new fault stops the running chunk (`failed`; on the Franka profile `operator_required`,
+    /// latched until the operator clears it), the arm brakes to rest and holds, and chunks are
+    /// refused until the gripper is clear. Returns the stopped chunk's reply when there is one
+    /// and the arm already rests. Allocation-free.
+    pub fn gripper_reports(&mut self, grasp: u32, fault: Option<&str>) -> Option<Reply> {
+        self.gripper_grasp = Some(grasp);
+        let Some(text) = fault else {
+            self.gripper_fault = None;
+            return None;
+        };
+        let new = self.gripper_fault.is_none();
+        self.gripper_fault = Some(Text::of(format_args!("{text}")));
+        if !new {
+            return None;
+        }
+        let franka = self.reflexes.is_some();
+        if franka && self.fault.is_none() {
+            self.fault = Some(Text::of(format_args!("gripper: {text}")));
+        }
+        let a = self.active.take()?;
+        let n = self.plan.len();
+        let done = self.reference.reached;
+        let mut r = if franka {
+            let why = format_args!(
+                "stopped: the gripper reports a fault ({text}) during waypoint {} of {n}; the arm holds and needs an operator: stop sending actions and report",
+                (done + 1).min(n)
+            );
+            Reply::formatted(a.id, a.client, Status::OperatorRequired, why)
+        } else {
+            let why = format_args!(
+                "stopped: the gripper reports a fault ({text}) during waypoint {} of {n}; the arm holds and chunks are refused until the gripper is clear",
+                (done + 1).min(n)
+            );
+            Reply::formatted(a.id, a.client, Status::Failed, why)
+        };
+        r.executed = done as u32;
+        let r = a.stamp(r);
+        if self.tracker.is_some() {
+            self.halting = true;
+            self.stop_reply = Some(r);
+            None
+        } else {
+            Some(r)
+        }
+    }
+
+    /// The gripper's fault while one holds the arm (see [`Self::gripper_reports`]).
+    pub fn gripper_fault(&self) -> Option<&str> {
+        self.gripper_fault.as_ref().map(Text::as_str)
     }
 
     /// Whether the robot side is silent (between [`Self::robot_lost`] and [`Self::robot_back`]).
@@ -662,6 +727,13 @@ impl Controller {
             );
             return Some(Reply::formatted(id, client, Status::OperatorRequired, why));
         }
+        if let Some(g) = self.gripper_fault {
+            self.last_rejection = Some("gripper_fault");
+            let why = format_args!(
+                "the gripper reports a fault ({g}): the arm holds and chunks are refused until the gripper is clear; observe again later, or stop and report"
+            );
+            return Some(Reply::formatted(id, client, Status::Rejected, why));
+        }
         if self.robot_error != ipc_schema::ROBOT_OK {
             self.last_rejection = Some("robot_recovering");
             let why = "the robot's own reflex stopped the arm and its automatic recovery is running; observe again in a moment and replan from the measured state";
@@ -892,7 +964,9 @@ impl Controller {
                         }
                         moving |= state.dq_rad_s[j].abs() > SETTLE_VEL_RAD_S;
                     }
-                    let finger_done = (state.finger_m - tracker.finger_m).abs() < 1e-3 || self.finger_still_ticks > 50;
+                    let finger_done = ((state.finger_m - tracker.finger_m).abs() < 1e-3 || self.finger_still_ticks > 50)
+                        // A gripper with its own detection says when its fingers have stopped.
+                        && self.gripper_grasp != Some(ipc_schema::GRASP_MOVING);
                     let timed_out = a.t_s - since_s > SETTLE_TIMEOUT_S;
                     if (err < SETTLE_TOL_RAD && !moving && finger_done) || timed_out {
                         let mut r = self.reached(a.id, a.client, &state.q_rad, err, worst);
@@ -1059,8 +1133,35 @@ impl Controller {
             active_request: self.active_request(),
             reset_id: state.reset_id,
             external_force_n: self.force_n,
-            fault: u32::from(self.fault.is_some()) | (u32::from(self.robot_lost_since_s.is_some()) << 1),
-            _pad: 0,
+            fault: u32::from(self.fault.is_some())
+                | (u32::from(self.robot_lost_since_s.is_some()) << 1)
+                | (u32::from(self.gripper_fault.is_some()) << 2),
+            grasp: self.gripper_grasp.unwrap_or_else(|| self.grasp(state)),
+            gripper_error: self
+                .gripper_fault
+                .map(|t| {
+                    let mut e = [[0u8; 32]; ipc_schema::ERROR_TEXT_LEN / 32];
+                    ipc_schema::write_str(e.as_flattened_mut(), t.as_str());
+                    e
+                })
+                .unwrap_or_default(),
+        }
+    }
+
+    /// The grasp judged from the measured fingers, for grippers without object detection of
+    /// their own (the simulated ones, the Franka Hand): fingers still short of a closing command
+    /// hold something, as a Robotiq's own detection would say.
+    fn grasp(&self, state: &SimState) -> u32 {
+        let Some(t) = self.tracker.as_ref() else { return ipc_schema::GRASP_UNKNOWN };
+        let gap = state.finger_m - t.finger_m;
+        if self.finger_still_ticks <= 50 && gap.abs() >= 1e-3 {
+            ipc_schema::GRASP_MOVING
+        } else if gap.abs() < 1e-3 {
+            ipc_schema::GRASP_AT_TARGET
+        } else if gap > 0.0 {
+            ipc_schema::GRASP_HOLDING
+        } else {
+            ipc_schema::GRASP_BLOCKED_OPENING
         }
     }
 }

@@ -170,13 +170,48 @@ impl RobotSide {
     }
 }
 
-/// A running instance. Dropping it stops both processes.
+/// A running instance. Dropping it stops every process.
 pub struct Instance {
     pub name: String,
     pub sim: Child,
     pub control: Child,
     /// The robot side's program (`r2g-sim` or `r2g-fci`), for messages.
     pub side: &'static str,
+    /// The devices the robot config names, each its own process (`r2g-robotiq`, one camera host
+    /// per camera), started once the runtime publishes state: what it is, and the process
+    /// (None once it ended and was reported).
+    pub devices: Vec<(String, Option<Child>)>,
+    /// Their programs and arguments, not started yet.
+    pending_devices: Vec<(String, PathBuf, Vec<String>)>,
+}
+
+/// The device processes a robot config names: (what, program, arguments).
+pub fn device_processes(
+    instance: &str,
+    robot_config: &Path,
+    config: &crate::RobotConfig,
+) -> anyhow::Result<Vec<(String, PathBuf, Vec<String>)>> {
+    let mut out = Vec::new();
+    if let crate::robot_config::Gripper::Robotiq2f85(r) = &config.gripper {
+        let args =
+            vec!["--instance".into(), instance.into(), "--robot-config".into(), robot_config.display().to_string()];
+        out.push((format!("r2g-robotiq ({})", r.port.display()), sibling("r2g-robotiq")?, args));
+    }
+    if !config.cameras.is_empty() {
+        let host = camera_host_script();
+        let python = checkout_dir("R2G_VENV", ".venv").join("bin").join("python");
+        for c in &config.cameras {
+            let mut args = vec![host.display().to_string(), "--instance".into(), instance.into()];
+            args.extend(c.host_args());
+            out.push((format!("camera host '{}'", c.name), python.clone(), args));
+        }
+    }
+    Ok(out)
+}
+
+/// The camera host's script (`camera-host/py/r2g_camera_host.py` of the checkout).
+pub fn camera_host_script() -> PathBuf {
+    checkout_dir("R2G_CAMERA_HOST", "camera-host").join("py").join("r2g_camera_host.py")
 }
 
 fn spawn(program: &Path, args: &[String]) -> anyhow::Result<Child> {
@@ -238,10 +273,19 @@ impl Instance {
         ];
         sim_args.extend(opts.sim_args.iter().cloned());
         side.check(opts.mode, opts.robot_config.as_deref())?;
+        let mut pending_devices = Vec::new();
         if let Some(rc) = &opts.robot_config {
             // Checked before anything starts (with the calibration files it names), so a bad
             // file fails `r2g up` with its reason and leaves no robot side connected.
-            crate::calibration::Calibration::load(&crate::RobotConfig::load(rc)?.calibration)?;
+            let config = crate::RobotConfig::load(rc)?;
+            crate::calibration::Calibration::load(&config.calibration)?;
+            pending_devices = device_processes(&opts.instance, rc, &config)?;
+            if !config.cameras.is_empty() && opts.mode == Mode::Lockstep {
+                bail!("cameras that are devices deliver frames on the wall clock: lockstep is for simulation only");
+            }
+            for c in &config.cameras {
+                sim_args.extend(["--camera-host".into(), c.name.clone()]);
+            }
         }
         let sim = match side {
             RobotSide::Sim => spawn(&sibling("r2g-sim")?, &sim_args)?,
@@ -276,7 +320,14 @@ impl Instance {
                 return Err(e);
             }
         };
-        let mut inst = Self { name: opts.instance.clone(), sim, control, side: side.program() };
+        let mut inst = Self {
+            name: opts.instance.clone(),
+            sim,
+            control,
+            side: side.program(),
+            devices: Vec::new(),
+            pending_devices,
+        };
         if let Err(e) = inst.wait_ready(opts) {
             inst.stop();
             return Err(e);
@@ -302,6 +353,13 @@ impl Instance {
             bool,
         )> = Vec::new();
         loop {
+            // A device that ends before the instance is ready (a camera that is not there, a
+            // calibration that does not fit) fails the start, with its own message above.
+            for (what, child) in &mut self.devices {
+                if let Some(s) = child.as_mut().map(Child::try_wait).transpose()?.flatten() {
+                    bail!("{what} exited ({s}) before the instance was ready");
+                }
+            }
             if let Some(status) = self.exited()? {
                 bail!("{status} before the instance was ready");
             }
@@ -328,6 +386,14 @@ impl Instance {
             }
             while robot.receive()?.is_some() {
                 have_state = true;
+            }
+            if have_state && !self.pending_devices.is_empty() {
+                // The devices' processes attach to a running runtime (its calibration report
+                // and clock): start them now.
+                for (what, program, args) in std::mem::take(&mut self.pending_devices) {
+                    let child = spawn(&program, &args).with_context(|| format!("starting {what}"))?;
+                    self.devices.push((what, Some(child)));
+                }
             }
             for c in cams.iter_mut() {
                 while c.1.receive()?.is_some() {
@@ -356,6 +422,16 @@ impl Instance {
         }
         if let Some(s) = self.control.try_wait()? {
             return Ok(Some(describe("r2g-control", self.control.id(), s)));
+        }
+        // A device process that ends stops nothing: the runtime holds the arm while the gripper
+        // is silent, and agents get no frame from a camera that stopped. Said once.
+        for (what, child) in &mut self.devices {
+            if let Some(c) = child {
+                if let Some(s) = c.try_wait()? {
+                    eprintln!("r2g: {}; instance '{}' goes on without it", describe(what, c.id(), s), self.name);
+                    *child = None;
+                }
+            }
         }
         Ok(None)
     }
@@ -389,9 +465,14 @@ impl Instance {
         }
     }
 
-    /// SIGTERM to both (runtime first), SIGKILL after 5 s, then removes what dead processes left.
+    /// SIGTERM to every process (devices, then the runtime, then the robot side), SIGKILL after
+    /// 5 s, then removes what dead processes left.
     pub fn stop(&mut self) {
-        for child in [&mut self.control, &mut self.sim] {
+        let devices = self.devices.iter_mut().filter_map(|(_, c)| c.as_mut());
+        let mut all: Vec<&mut Child> = devices.collect();
+        all.push(&mut self.control);
+        all.push(&mut self.sim);
+        for child in all.iter_mut() {
             if matches!(child.try_wait(), Ok(None)) {
                 // SAFETY: signals a child we started and have not reaped, by pid.
                 unsafe {
@@ -400,7 +481,7 @@ impl Instance {
             }
         }
         let t0 = Instant::now();
-        for child in [&mut self.control, &mut self.sim] {
+        for child in all {
             loop {
                 match child.try_wait() {
                     Ok(Some(_)) | Err(_) => break,

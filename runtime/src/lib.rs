@@ -19,7 +19,9 @@ use anyhow::{bail, Context};
 use controllers::safety::SafetyChecks;
 use controllers::RobotModel;
 use ipc_schema::process::{self, PeerWatch};
-use ipc_schema::{JointCommand, Mode, Qos, Reply, Request, RobotState, RuntimeInfo, Services, SimReset, SimState};
+use ipc_schema::{
+    GripperState, JointCommand, Mode, Qos, Reply, Request, RobotState, RuntimeInfo, Services, SimReset, SimState,
+};
 
 pub use controller::Controller;
 pub use robot_config::RobotConfig;
@@ -146,12 +148,27 @@ struct Ports {
     sim_wake: Notifier,
     agent_wake: Notifier,
     wake: Listener,
+    /// A gripper driven by its own process (`r2g-robotiq`), when the robot config names one.
+    gripper_sub: Option<Sub<GripperState>>,
 }
 
+/// How long a gripper driver may stay silent before the arm holds, ns.
+const GRIPPER_TIMEOUT_NS: u64 = 250_000_000;
+
 impl Ports {
-    fn open(services: &Services) -> anyhow::Result<Self> {
+    fn open(services: &Services, gripper: bool) -> anyhow::Result<Self> {
         let node = ipc_schema::node(&process::control_node(&services.instance))?;
+        let gripper_sub = if gripper {
+            Some(
+                ipc_schema::open_or_create_pubsub::<GripperState>(&node, &services.gripper_state(), Qos::STREAM)?
+                    .subscriber_builder()
+                    .create()?,
+            )
+        } else {
+            None
+        };
         Ok(Self {
+            gripper_sub,
             state_sub: ipc_schema::open_or_create_pubsub::<SimState>(&node, &services.sim_state(), Qos::STREAM)?
                 .subscriber_builder()
                 .create()?,
@@ -199,6 +216,28 @@ impl Ports {
             stats.robot_port_errors += 1;
             false
         })
+    }
+
+    /// A gripper of its own: its newest state replaces the robot side's fingers in `latest`, and
+    /// the controller learns its grasp and its fault, or that it is silent. Allocation-free.
+    #[inline]
+    fn gripper(&self, g: &mut GripperState, latest: &mut SimState, now: u64, ctl: &mut Controller) -> Option<Reply> {
+        let sub = self.gripper_sub.as_ref()?;
+        while let Ok(Some(s)) = sub.receive() {
+            *g = *s;
+        }
+        latest.finger_m = g.finger_m;
+        latest.finger_max_m = g.finger_max_m;
+        if g.seq == 0 {
+            return ctl.gripper_reports(ipc_schema::GRASP_UNKNOWN, Some("no state from the gripper driver yet"));
+        }
+        if now.saturating_sub(g.published_ns) > GRIPPER_TIMEOUT_NS {
+            return ctl.gripper_reports(
+                ipc_schema::GRASP_UNKNOWN,
+                Some("the gripper driver published nothing for 250 ms (it stopped or hangs)"),
+            );
+        }
+        ctl.gripper_reports(g.grasp, (g.fault != 0).then(|| g.fault_str()))
     }
 
     /// Wall mode: the command to the robot side; a robot side that is gone is counted, not fatal.
@@ -374,7 +413,11 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<TickStats> {
         .with_reflex_window(cfg.robot.reflexes.window_s);
     // Leftovers of a robot side or runtime that was SIGKILLed would hold their ports' slots.
     ipc_schema::cleanup_dead_nodes();
-    let ports = Ports::open(&services)?;
+    let own_gripper = matches!(cfg.robot.gripper, robot_config::Gripper::Robotiq2f85(_));
+    if own_gripper && cfg.mode == Mode::Lockstep {
+        bail!("a gripper on its own device (robotiq_2f85) moves on the wall clock: lockstep is for simulation only");
+    }
+    let ports = Ports::open(&services, own_gripper)?;
     let sim = PeerWatch::spawn(process::sim_node(&cfg.instance), Duration::from_secs(30));
     // The threads beside the loop start before it raises itself to SCHED_FIFO, so they keep
     // the normal scheduler.
@@ -482,6 +525,7 @@ fn wall_loop(
     let mut robot_seq = 0u64;
     let (mut window_max, mut window_end) = (0u64, start + 1_000_000_000);
     let mut clear_pending: Option<(u64, bool)> = None;
+    let mut gripper = GripperState::default();
     // Who paces the tick: our clock, or a robot side that publishes one state per robot cycle
     // and uses only the command answering it (a real arm's 1 kHz packets; see the README).
     let paced = latest.paced != 0;
@@ -552,6 +596,7 @@ fn wall_loop(
             stats.robot_losses += 1;
             robot_seen_again = false;
         }
+        let stopped = ports.gripper(&mut gripper, &mut latest, woke, ctl);
         // Every command is checked against the limits, each against the one a tick before (not
         // on a tick whose command restarted at the measured state: a reset, a robot side that
         // came back or recovered).
@@ -566,6 +611,7 @@ fn wall_loop(
             (cmd, reply)
         };
         let (mut cmd, mut reply) = checked_tick(ctl, &mut stats);
+        reply = stopped.or(reply);
         if paced && fresh {
             // A robot cycle without a state (a lost packet, or one this loop was too late to
             // read) still moved the robot's own interpolation on: the command covers every

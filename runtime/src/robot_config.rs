@@ -41,6 +41,230 @@ pub struct RobotConfig {
     pub reflexes: Reflexes,
     /// Calibration files (`calibration` table); read at start by [`crate::calibration`].
     pub calibration: CalibrationFiles,
+    /// Which gripper the arm carries (`gripper` table).
+    pub gripper: Gripper,
+    /// Cameras that are devices (`cameras` table), sorted by name; each runs in a camera host.
+    pub cameras: Vec<CameraDevice>,
+}
+
+/// The gripper a robot config names (`gripper.driver`).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub enum Gripper {
+    /// The robot side's own fingers: the simulated ones in r2g-sim; none with a real arm.
+    #[default]
+    Sim,
+    /// The Franka Hand, driven by r2g-fci over the arm's network link.
+    FrankaHand,
+    /// A Robotiq 2F-85 on a serial port (Modbus RTU), driven by its own process, `r2g-robotiq`.
+    Robotiq2f85(Robotiq),
+}
+
+/// A Robotiq 2F-85's link and settings (`gripper` with `"driver": "robotiq_2f85"`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Robotiq {
+    /// Serial device, e.g. `/dev/ttyUSB0` (better: a stable `/dev/serial/by-id/...` link).
+    pub port: PathBuf,
+    /// Modbus slave id (the gripper's default is 9).
+    pub slave: u8,
+    pub baud: u32,
+    /// Finger speed (0..255, the device's own scale) and grip force (0..255).
+    pub speed: u8,
+    pub force: u8,
+    /// Position count at which the fingers touch (fully closed); 0 is fully open.
+    pub closed_count: u8,
+}
+
+impl Gripper {
+    /// The `driver` name as the config writes it.
+    pub fn driver(&self) -> &'static str {
+        match self {
+            Self::Sim => "sim",
+            Self::FrankaHand => "franka_hand",
+            Self::Robotiq2f85(_) => "robotiq_2f85",
+        }
+    }
+}
+
+/// A camera device a robot config names (`cameras.NAME`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraDevice {
+    pub name: String,
+    pub driver: CameraDriver,
+    pub width: u32,
+    pub height: u32,
+    pub fps: u32,
+    /// Publish depth too (RealSense only).
+    pub depth: bool,
+}
+
+/// Where a camera's frames come from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CameraDriver {
+    /// An Intel RealSense, by serial number (librealsense2).
+    Realsense { serial: String },
+    /// A UVC camera through V4L2, by device path (RGB only).
+    Uvc { device: PathBuf },
+    /// Frames from a file fed through librealsense's software device: the RealSense code path
+    /// without hardware (tests, offline checks).
+    Replay { file: PathBuf },
+}
+
+impl CameraDevice {
+    /// The camera host's arguments after `--instance NAME`.
+    pub fn host_args(&self) -> Vec<String> {
+        let mut a = vec!["--camera".to_string(), self.name.clone()];
+        match &self.driver {
+            CameraDriver::Realsense { serial } => {
+                a.extend(["--driver".into(), "realsense".into(), "--serial".into(), serial.clone()])
+            }
+            CameraDriver::Uvc { device } => {
+                a.extend(["--driver".into(), "uvc".into(), "--device".into(), device.display().to_string()])
+            }
+            CameraDriver::Replay { file } => {
+                a.extend(["--driver".into(), "replay".into(), "--replay".into(), file.display().to_string()])
+            }
+        }
+        a.extend([
+            "--width".into(),
+            self.width.to_string(),
+            "--height".into(),
+            self.height.to_string(),
+            "--fps".into(),
+            self.fps.to_string(),
+        ]);
+        if !self.depth {
+            a.push("--no-depth".into());
+        }
+        a
+    }
+}
+
+fn gripper(v: Option<&Value>) -> anyhow::Result<Gripper> {
+    let Some(v) = v else { return Ok(Gripper::Sim) };
+    let m = table(v, "gripper", &["driver", "port", "slave", "baud", "speed", "force", "closed_count"])?;
+    let driver = m.get("driver").and_then(Value::as_str);
+    let only_driver = |name: &str| -> anyhow::Result<()> {
+        if let Some(k) = m.keys().find(|k| *k != "driver") {
+            bail!("gripper.{k} does not apply to the {name} gripper (only robotiq_2f85 takes settings)");
+        }
+        Ok(())
+    };
+    match driver {
+        Some("sim") => only_driver("sim").map(|_| Gripper::Sim),
+        Some("franka_hand") => only_driver("franka_hand").map(|_| Gripper::FrankaHand),
+        Some("robotiq_2f85") => {
+            let port = match m.get("port").and_then(Value::as_str) {
+                Some(p) if p.starts_with('/') && p.len() <= 200 && !p.chars().any(char::is_control) => PathBuf::from(p),
+                _ => bail!("gripper.port must be the absolute path of the serial device, e.g. \"/dev/ttyUSB0\""),
+            };
+            let whole = |key: &str, default: f64, lo: f64, hi: f64| -> anyhow::Result<f64> {
+                let x = number(m, "gripper", key, default, lo, hi)?;
+                if x.fract() != 0.0 {
+                    bail!("gripper.{key} = {x} must be a whole number");
+                }
+                Ok(x)
+            };
+            let baud = whole("baud", 115200.0, 1200.0, 1_000_000.0)? as u32;
+            Ok(Gripper::Robotiq2f85(Robotiq {
+                port,
+                slave: whole("slave", 9.0, 1.0, 247.0)? as u8,
+                baud,
+                speed: whole("speed", 255.0, 0.0, 255.0)? as u8,
+                force: whole("force", 100.0, 0.0, 255.0)? as u8,
+                closed_count: whole("closed_count", 230.0, 100.0, 255.0)? as u8,
+            }))
+        }
+        _ => bail!("gripper.driver must be \"sim\", \"franka_hand\" or \"robotiq_2f85\", got {:?}", m.get("driver")),
+    }
+}
+
+fn cameras(v: Option<&Value>, calibration: &CalibrationFiles) -> anyhow::Result<Vec<CameraDevice>> {
+    let Some(v) = v else { return Ok(Vec::new()) };
+    let Some(m) = v.as_object() else { bail!("cameras must be an object camera name → its device") };
+    if m.len() > MAX_CAMERAS {
+        bail!("cameras names {} cameras, at most {MAX_CAMERAS} are accepted", m.len());
+    }
+    let mut out = Vec::new();
+    for (name, v) in m {
+        if name.is_empty()
+            || name.len() > NAME_LEN
+            || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+        {
+            bail!("cameras: \"{name}\" is not a camera name (1 to {NAME_LEN} of A-Z a-z 0-9 _ -)");
+        }
+        let what = format!("cameras.{name}");
+        let c = table(v, &what, &["driver", "serial", "device", "file", "width", "height", "fps", "depth"])?;
+        let text = |key: &str| {
+            c.get(key)
+                .and_then(Value::as_str)
+                .filter(|s| !s.is_empty() && s.len() <= 200 && !s.chars().any(char::is_control))
+        };
+        let driver = match c.get("driver").and_then(Value::as_str) {
+            Some("realsense") => CameraDriver::Realsense {
+                serial: text("serial")
+                    .filter(|s| s.chars().all(|c| c.is_ascii_alphanumeric()))
+                    .ok_or_else(|| {
+                        anyhow::anyhow!("{what}.serial must be the RealSense's serial number (letters and digits)")
+                    })?
+                    .to_string(),
+            },
+            Some("uvc") => CameraDriver::Uvc {
+                device: text("device")
+                    .filter(|s| s.starts_with('/'))
+                    .ok_or_else(|| {
+                        anyhow::anyhow!(
+                            "{what}.device must be the absolute path of a V4L2 device, e.g. \"/dev/video0\""
+                        )
+                    })?
+                    .into(),
+            },
+            Some("replay") => CameraDriver::Replay {
+                file: text("file")
+                    .ok_or_else(|| anyhow::anyhow!("{what}.file must name a .npz of recorded frames"))?
+                    .into(),
+            },
+            other => bail!("{what}.driver must be \"realsense\", \"uvc\" or \"replay\", got {other:?}"),
+        };
+        let allowed: &[&str] = match driver {
+            CameraDriver::Realsense { .. } => &["serial"],
+            CameraDriver::Uvc { .. } => &["device"],
+            CameraDriver::Replay { .. } => &["file"],
+        };
+        if let Some(k) = ["serial", "device", "file"].iter().find(|k| c.contains_key(**k) && !allowed.contains(k)) {
+            bail!("{what}.{k} does not apply to its driver");
+        }
+        let whole = |key: &str, default: f64, lo: f64, hi: f64| -> anyhow::Result<u32> {
+            let x = number(c, &what, key, default, lo, hi)?;
+            if x.fract() != 0.0 {
+                bail!("{what}.{key} = {x} must be a whole number");
+            }
+            Ok(x as u32)
+        };
+        let depth = match c.get("depth") {
+            None => !matches!(driver, CameraDriver::Uvc { .. }),
+            Some(Value::Bool(b)) => *b,
+            Some(v) => bail!("{what}.depth must be true or false, got {v}"),
+        };
+        if depth && matches!(driver, CameraDriver::Uvc { .. }) {
+            bail!("{what}.depth: a UVC camera gives no depth");
+        }
+        if !calibration.cameras.iter().any(|(n, _)| n == name) {
+            bail!(
+                "{what} has no calibration file (calibration.cameras.{name}): where the camera sits is unknown, so its \
+                 images cannot be related to the robot; add one (runtime/README.md, \"Calibration\")"
+            );
+        }
+        out.push(CameraDevice {
+            name: name.clone(),
+            driver,
+            width: whole("width", 640.0, 16.0, ipc_schema::MAX_IMAGE_WIDTH as f64)?,
+            height: whole("height", 480.0, 16.0, ipc_schema::MAX_IMAGE_HEIGHT as f64)?,
+            fps: whole("fps", 30.0, 1.0, 90.0)?,
+            depth,
+        });
+    }
+    out.sort_by(|a, b| a.name.cmp(&b.name));
+    Ok(out)
 }
 
 /// The calibration files a robot config names. [`RobotConfig::load`] resolves relative paths
@@ -129,6 +353,8 @@ impl Default for RobotConfig {
                 collision_force_n: [20.0; 6],
             },
             calibration: CalibrationFiles::default(),
+            gripper: Gripper::Sim,
+            cameras: Vec::new(),
         }
     }
 }
@@ -177,7 +403,7 @@ fn number(m: &Map<String, Value>, what: &str, key: &str, default: f64, lo: f64, 
 impl RobotConfig {
     pub fn parse(text: &str) -> anyhow::Result<Self> {
         let root: Value = serde_json::from_str(text).context("not valid JSON")?;
-        let top = table(&root, "robot.json", &["profile", "control", "franka", "calibration"])?;
+        let top = table(&root, "robot.json", &["profile", "control", "franka", "calibration", "gripper", "cameras"])?;
         let d = Self::default();
         let profile = match top.get("profile") {
             None => bail!("robot.json has no \"profile\": use \"simulation\" or \"franka\""),
@@ -242,7 +468,11 @@ impl RobotConfig {
                 collision_force_n: numbers(franka, "franka", "collision_force_n", r.collision_force_n, 0.1, 200.0)?,
             },
             calibration: CalibrationFiles::parse(calibration)?,
+            gripper: gripper(top.get("gripper"))?,
+            cameras: Vec::new(),
         };
+        let mut c = c;
+        c.cameras = cameras(top.get("cameras"), &c.calibration)?;
         let r = &c.reflexes;
         let pairs = r
             .contact_torque_nm
@@ -260,6 +490,12 @@ impl RobotConfig {
         let mut c = Self::parse(&text).with_context(|| format!("robot config {}", path.display()))?;
         let dir = path.parent().unwrap_or(Path::new("."));
         c.calibration = c.calibration.resolved(dir).with_context(|| format!("robot config {}", path.display()))?;
+        for cam in &mut c.cameras {
+            if let CameraDriver::Replay { file } = &mut cam.driver {
+                let joined = dir.join(&*file);
+                *file = std::path::absolute(&joined).unwrap_or(joined);
+            }
+        }
         Ok(c)
     }
 
@@ -314,6 +550,29 @@ mod tests {
     }
 
     #[test]
+    fn devices_parse() {
+        let c = RobotConfig::parse(
+            r#"{"profile": "franka",
+                "gripper": {"driver": "robotiq_2f85", "port": "/dev/ttyUSB0", "force": 40},
+                "calibration": {"cameras": {"wrist": "w.json", "front": "f.json"}},
+                "cameras": {"wrist": {"driver": "realsense", "serial": "123456789012", "fps": 15},
+                            "front": {"driver": "uvc", "device": "/dev/video2", "width": 320, "height": 240}}}"#,
+        )
+        .unwrap();
+        let Gripper::Robotiq2f85(r) = &c.gripper else { panic!("{:?}", c.gripper) };
+        assert_eq!((r.slave, r.baud, r.speed, r.force, r.closed_count), (9, 115200, 255, 40, 230));
+        assert_eq!(c.cameras.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(), ["front", "wrist"]);
+        assert!(!c.cameras[0].depth && c.cameras[1].depth);
+        assert_eq!(
+            c.cameras[1].host_args()[..6],
+            ["--camera", "wrist", "--driver", "realsense", "--serial", "123456789012"]
+        );
+        assert!(c.cameras[0].host_args().contains(&"--no-depth".to_string()));
+        let hand = RobotConfig::parse(r#"{"profile": "franka", "gripper": {"driver": "franka_hand"}}"#).unwrap();
+        assert_eq!(hand.gripper, Gripper::FrankaHand);
+    }
+
+    #[test]
     fn bad_files_name_the_key_and_what_is_accepted() {
         for (text, want) in [
             (r#"{"profile": "real"}"#, "\"profile\": \"real\" is unknown"),
@@ -345,6 +604,30 @@ mod tests {
             (
                 r#"{"profile": "franka", "calibration": {"cameras": {"a": "1", "b": "2", "c": "3", "d": "4", "e": "5"}}}"#,
                 "names 5 cameras, at most 4",
+            ),
+            (r#"{"profile": "franka", "gripper": {"driver": "robotiq"}}"#, "gripper.driver must be"),
+            (
+                r#"{"profile": "franka", "gripper": {"driver": "robotiq_2f85"}}"#,
+                "gripper.port must be the absolute path",
+            ),
+            (
+                r#"{"profile": "franka", "gripper": {"driver": "robotiq_2f85", "port": "/dev/ttyUSB0", "force": 300}}"#,
+                "gripper.force = 300 is outside",
+            ),
+            (r#"{"profile": "franka", "gripper": {"driver": "sim", "port": "/dev/x"}}"#, "gripper.port does not apply"),
+            (
+                r#"{"profile": "franka", "cameras": {"wrist": {"driver": "realsense", "serial": "1"}}}"#,
+                "no calibration file",
+            ),
+            (r#"{"profile": "franka", "cameras": {"wrist": {"driver": "kinect"}}}"#, "cameras.wrist.driver must be"),
+            (r#"{"profile": "franka", "cameras": {"w": {"driver": "realsense", "serial": "a;b"}}}"#, "serial number"),
+            (
+                r#"{"profile": "franka", "cameras": {"w": {"driver": "uvc", "device": "/dev/video0", "depth": true}}}"#,
+                "gives no depth",
+            ),
+            (
+                r#"{"profile": "franka", "cameras": {"w": {"driver": "uvc", "serial": "1"}}}"#,
+                "cameras.w.device must be",
             ),
         ] {
             let e = format!("{:#}", RobotConfig::parse(text).unwrap_err());

@@ -488,3 +488,68 @@ fn robot_reflexes_reply_after_the_recovery_and_a_failed_one_waits_for_each_clear
     };
     assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
 }
+
+/// Ticks with a gripper of its own reporting each tick, as the wall loop does: `fault(tick)`
+/// gives its fault text (None: clear). Returns the first reply and the state's grasp then.
+fn gripper_ticks(
+    ctl: &mut Controller,
+    state: &mut SimState,
+    ticks: u64,
+    fault: impl Fn(u64) -> Option<&'static str>,
+) -> Option<(ipc_schema::Reply, u64)> {
+    for tick in 0..ticks {
+        let stopped = ctl.gripper_reports(ipc_schema::GRASP_HOLDING, fault(tick));
+        let (cmd, reply) = ctl.tick(state);
+        state.seq += 1;
+        (state.q_rad, state.dq_rad_s) = (cmd.q_rad, cmd.dq_rad_s);
+        if let Some(r) = stopped.or(reply) {
+            return Some((r, tick));
+        }
+    }
+    None
+}
+
+#[test]
+fn a_gripper_fault_stops_the_chunk_holds_the_arm_and_refuses_chunks_until_clear() {
+    for franka_profile in [false, true] {
+        let (robot, safety) = runtime::scene_robot(&scene()).expect("scene");
+        let mut ctl = Controller::new(robot, LimiterConfig::default(), 0.001).with_safety(safety);
+        if franka_profile {
+            ctl = franka(30.0, 80.0);
+        }
+        let mut state = SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, ..SimState::default() };
+        let (reply, _) = ctl.request(&request(1, ControlType::Joint, &ramp(HOME, 0, 0.4, 10)), &state);
+        assert!(reply.is_none());
+        let fault = |t: u64| (t >= 300).then_some("Robotiq fault 0x0E: overcurrent");
+        let (r, tick) = gripper_ticks(&mut ctl, &mut state, 5000, fault).expect("a reply");
+        let want = if franka_profile { Status::OperatorRequired } else { Status::Failed };
+        assert_eq!(r.status, want as u32, "{}", r.reason_str());
+        assert!(
+            r.reason_str().contains("the gripper reports a fault (Robotiq fault 0x0E: overcurrent)"),
+            "{}",
+            r.reason_str()
+        );
+        assert!(tick > 300 && r.executed < 10, "stopped part-way, after braking: tick {tick}");
+        assert!(state.dq_rad_s.iter().all(|v| v.abs() < 1e-3), "the reply waits until the arm rests");
+        let s = ctl.robot_state(&state, 1, 1);
+        assert_eq!(s.fault & 4, 4);
+        assert_eq!(s.gripper_error_str(), "Robotiq fault 0x0E: overcurrent");
+        assert_eq!(s.grasp, ipc_schema::GRASP_HOLDING);
+        // Refused while the gripper faults.
+        let (r, _) = ctl.request(&request(2, ControlType::Joint, &[joint_wp(HOME, -1.0)]), &state);
+        let r = r.expect("refused at once");
+        assert_ne!(r.status, Status::Accepted as u32);
+        // The gripper clears; on the Franka profile the operator must clear too.
+        assert!(ctl.gripper_reports(ipc_schema::GRASP_AT_TARGET, None).is_none());
+        if franka_profile {
+            let (r, _) = ctl.request(&request(3, ControlType::Joint, &[joint_wp(HOME, -1.0)]), &state);
+            assert_eq!(r.expect("refused").status, Status::OperatorRequired as u32);
+            assert!(ctl.clear_fault());
+        }
+        assert_eq!(ctl.robot_state(&state, 2, 1).fault, 0);
+        let mut target = state.q_rad;
+        target[6] += 0.1;
+        let (r, _) = run(&mut ctl, &mut state, &request(4, ControlType::Joint, &[joint_wp(target, -1.0)]));
+        assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
+    }
+}

@@ -42,6 +42,11 @@ struct Args {
     /// goes away, as `r2g up` expects.
     #[arg(long)]
     outlive_control: bool,
+    /// A camera whose frames a camera host publishes (a real device, the robot config's
+    /// `cameras`); repeatable. It is listed for agents, and a scene camera of that name is not
+    /// rendered.
+    #[arg(long = "camera-host", value_name = "NAME")]
+    camera_hosts: Vec<String>,
 }
 
 /// Writes an episode's trace and its evaluation; a failure to write is reported, not fatal.
@@ -107,13 +112,29 @@ fn run() -> anyhow::Result<()> {
 
     let mut info =
         SimInfo { schema: ipc_schema::SCHEMA_VERSION, physics_timestep_s: sim.scene.timestep_s, ..Default::default() };
-    let render_on = args.render_hz > 0.0 && !sim.scene.cameras.is_empty();
-    if render_on {
-        info.camera_count = sim.scene.cameras.len() as u32;
-        for (i, c) in sim.scene.cameras.iter().enumerate() {
-            ipc_schema::write_str(&mut info.camera_names[i], &c.name);
-        }
+    let rendered: Vec<_> = sim
+        .scene
+        .cameras
+        .iter()
+        .cloned()
+        .zip(sim.layout.cameras.iter().map(|c| c.1))
+        .filter(|(c, _)| !args.camera_hosts.contains(&c.name))
+        .collect();
+    let render_on = args.render_hz > 0.0 && !rendered.is_empty();
+    let mut listed: Vec<&str> =
+        if render_on { rendered.iter().map(|(c, _)| c.name.as_str()).collect() } else { Vec::new() };
+    listed.extend(args.camera_hosts.iter().map(String::as_str));
+    anyhow::ensure!(
+        listed.len() <= ipc_schema::MAX_CAMERAS,
+        "{} cameras ({}) are more than the {} an instance lists",
+        listed.len(),
+        listed.join(", "),
+        ipc_schema::MAX_CAMERAS
+    );
+    for (i, name) in listed.iter().enumerate() {
+        ipc_schema::write_str(&mut info.camera_names[i], name);
     }
+    info.camera_count = listed.len() as u32;
     info_pub.send_copy(info)?;
 
     let stop = Arc::new(AtomicBool::new(false));
@@ -121,7 +142,7 @@ fn run() -> anyhow::Result<()> {
     let render_thread = if render_on {
         let cfg = RenderConfig {
             services: services.clone(),
-            cameras: sim.scene.cameras.iter().cloned().zip(sim.layout.cameras.iter().map(|c| c.1)).collect(),
+            cameras: rendered,
             base_body: sim.layout.base_body,
             rate_hz: args.render_hz,
         };

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import atexit
+import contextlib
 import os
 import shutil
 import signal
@@ -58,18 +59,27 @@ class Instance:
                 self.proc.wait()
 
 
-def _instance(mode: str, tag: str, gym: str = "pick_block_plate", extra: tuple[str, ...] = ()) -> Iterator[Instance]:
-    inst = Instance(f"py{os.getpid()}{tag}", mode, gym, extra)
+@contextlib.contextmanager
+def robo_instance(name: str) -> Iterator[None]:
+    """`robo` in this process talks to instance `name` meanwhile (R2G_INSTANCE)."""
     previous = os.environ.get("R2G_INSTANCE")
-    os.environ["R2G_INSTANCE"] = inst.name
+    os.environ["R2G_INSTANCE"] = name
     try:
-        yield inst
+        yield
     finally:
-        inst.stop()
         if previous is None:
             os.environ.pop("R2G_INSTANCE", None)
         else:
             os.environ["R2G_INSTANCE"] = previous
+
+
+def _instance(mode: str, tag: str, gym: str = "pick_block_plate", extra: tuple[str, ...] = ()) -> Iterator[Instance]:
+    inst = Instance(f"py{os.getpid()}{tag}", mode, gym, extra)
+    try:
+        with robo_instance(inst.name):
+            yield inst
+    finally:
+        inst.stop()
 
 
 @pytest.fixture(scope="module")

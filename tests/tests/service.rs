@@ -614,3 +614,64 @@ fn bad_input_is_refused_with_the_key_and_writes_nothing() {
     assert!(stderr.contains("--fci <FCI>"), "{stderr}");
     assert!(entries(&root.0).is_empty(), "--fci-gripper without --fci wrote something");
 }
+
+/// A robot config naming a Robotiq 2F-85 and two cameras (a RealSense and a UVC camera) installs
+/// a gripper unit and one camera unit per camera, each verifying without a word and each allowed
+/// exactly its own device and the groups that own such devices.
+#[test]
+fn devices_get_units_that_open_only_their_own_devices() {
+    let root = Temp::new("devices");
+    let name = integration_tests::instance("devices");
+    let cfg = root.0.join("cfg");
+    std::fs::create_dir_all(&cfg).expect("cfg dir");
+    let cam = r#"{"base_from_camera": [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 1.2], [0, 0, 0, 1]]}"#;
+    std::fs::write(cfg.join("front.json"), cam).expect("write");
+    std::fs::write(cfg.join("side.json"), cam).expect("write");
+    std::fs::write(
+        cfg.join("robot.json"),
+        r#"{"profile": "franka",
+            "gripper": {"driver": "robotiq_2f85", "port": "/dev/ttyUSB0"},
+            "calibration": {"cameras": {"front": "front.json", "side": "side.json"}},
+            "cameras": {"front": {"driver": "realsense", "serial": "123456789012"},
+                        "side": {"driver": "uvc", "device": "/dev/video2"}}}"#,
+    )
+    .expect("write");
+    let robot_json = cfg.join("robot.json").display().to_string();
+    let out = install(&root.0.join("root"), &[&robot_json, "--gym", GYM, "--instance", &name]);
+    assert!(out.status.success(), "install failed: {}", String::from_utf8_lossy(&out.stderr));
+    let dir = root.0.join("root/etc/systemd/system");
+    let gripper = format!("r2g-robotiq@{name}.service");
+    let front = format!("r2g-camera@{name}.front.service");
+    let side = format!("r2g-camera@{name}.side.service");
+    for unit in [&gripper, &front, &side, &format!("r2g@{name}.target")] {
+        let out = run(Command::new(tool("systemd-analyze")).arg("verify").arg(dir.join(unit)));
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success() && stderr.trim().is_empty(), "systemd-analyze verify {unit}:\n{stderr}");
+    }
+    let target = directives(&dir, "r2g@.target", &name);
+    let wants = values(&target, "Wants");
+    for unit in [&gripper, &front, &side] {
+        assert!(wants.contains(&unit.as_str()), "the target does not want {unit}: {wants:?}");
+    }
+
+    let g = directives(&dir, "r2g-robotiq@.service", &name);
+    assert_eq!(values(&g, "DevicePolicy"), ["closed"]);
+    assert_eq!(values(&g, "DeviceAllow"), ["/dev/ttyUSB0", "rw"]);
+    assert_eq!(values(&g, "SupplementaryGroups"), ["dialout"]);
+    assert_eq!(values(&g, "PrivateNetwork"), ["yes"]);
+    assert_eq!(values(&g, "BindPaths"), [format!("/run/r2g/{name}/shm:/dev/shm")]);
+    let f = directives(&dir, "r2g-camera@.service", &format!("{name}.front"));
+    assert_eq!(values(&f, "DeviceAllow"), ["char-usb_device", "rw"]);
+    assert_eq!(values(&f, "SupplementaryGroups"), ["video"]);
+    assert_eq!(values(&f, "BindPaths"), [format!("/run/r2g/{name}/shm:/dev/shm")]);
+    let env = values(&f, "Environment");
+    for want in [format!("R2G_INSTANCE={name}"), "R2G_CAMERA_ARGS=--camera".to_string(), "123456789012".into()] {
+        assert!(env.contains(&want.as_str()), "the front camera unit lacks {want}: {env:?}");
+    }
+    let s = directives(&dir, "r2g-camera@.service", &format!("{name}.side"));
+    assert_eq!(values(&s, "DeviceAllow"), ["/dev/video2", "rw"]);
+    for unit in [&gripper, &front] {
+        let score = security(&dir, unit);
+        assert!(score <= 3.0, "{unit} exposure {score} > 3.0");
+    }
+}
