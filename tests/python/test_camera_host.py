@@ -79,13 +79,13 @@ def base_from_flange(state: dict) -> np.ndarray:
     return base_from_tcp(state) @ np.linalg.inv(ft)
 
 
-def up(tmp: Path, name: str, cameras: dict) -> subprocess.Popen:
+def up(tmp: Path, name: str, cameras: dict, render_hz: int = 10) -> subprocess.Popen:
     cfg = {"profile": "simulation",
            "calibration": {"cameras": {c: f"{c}.json" for c in cameras}},
            "cameras": cameras}
     (tmp / f"{name}.json").write_text(json.dumps(cfg))
     return subprocess.Popen(
-        [str(R2G), "up", "pick_block_plate", "--instance", name, "--mode", "wall", "--render-hz", "10",
+        [str(R2G), "up", "pick_block_plate", "--instance", name, "--mode", "wall", "--render-hz", str(render_hz),
          "--robot-config", str(tmp / f"{name}.json")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
 
