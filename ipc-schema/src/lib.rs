@@ -513,8 +513,8 @@ impl SimInfo {
     }
 }
 
-/// sim-host → agents: one rendered camera image. Written once into a loaned sample; readers
-/// borrow it in place.
+/// sim-host (or a camera host, for a real camera) → agents: one camera image. Written once into
+/// a loaned sample; readers borrow it in place.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
 #[type_name("r2g.CameraFrame.v1")]
@@ -524,7 +524,7 @@ pub struct CameraFrame {
     pub sim_time_s: f64,
     /// The [`SimState::seq`] of the physics state this frame shows.
     pub state_seq: u64,
-    /// CLOCK_MONOTONIC at the end of rendering, ns.
+    /// CLOCK_MONOTONIC at the end of rendering, ns (a camera host's frame: the exposure).
     pub rendered_ns: u64,
     pub width: u32,
     pub height: u32,
@@ -912,14 +912,16 @@ mod tests {
         // latency stamps and the profile limits; schema 3 the continuous TCP axis-angle vector
         // (RobotState); schema 4 the robot side's session (SimState, JointCommand); schema 5
         // pacing, the robot's own errors (SimState) and operator resets (JointCommand); schema 6
-        // the calibration report (RuntimeInfo).
+        // the calibration report (RuntimeInfo); schema 7 the gripper's grasp and error
+        // (RobotState) and the gripper driver's state (GripperState).
         assert_eq!(core::mem::size_of::<SimState>(), 248 + 8 + 4 + 4 + 8 + ERROR_TEXT_LEN);
         assert_eq!(core::mem::size_of::<JointCommand>(), 152);
         assert_eq!(core::mem::size_of::<Request>(), 40 + 8 * WAYPOINT_LEN * MAX_CHUNK);
-        assert_eq!(core::mem::size_of::<RobotState>(), 280);
+        assert_eq!(core::mem::size_of::<RobotState>(), 280 + ERROR_TEXT_LEN);
+        assert_eq!(core::mem::size_of::<GripperState>(), 56 + ERROR_TEXT_LEN);
         assert_eq!(core::mem::size_of::<Reply>(), 48 + REASON_LEN);
         assert_eq!(core::mem::size_of::<RuntimeInfo>(), 392 + CALIBRATION_LEN);
-        assert_eq!(SCHEMA_VERSION, 6);
+        assert_eq!(SCHEMA_VERSION, 7);
     }
 }
 
