@@ -32,8 +32,37 @@ pub struct EpisodeConfig {
     pub robot_config: Option<PathBuf>,
     /// Where new memory records from the worker's `memory/` folder are appended.
     pub memory_dir: PathBuf,
-    /// Text placed in the system prompt's skills section (later: the skill library).
-    pub skills: String,
+    /// Chooses the skills for the system prompt's skills section from the first observation.
+    pub skills: Option<Skills>,
+    /// The gym's augmentation seed and placement perturbation (recorded in config.json).
+    pub seed: u64,
+    pub perturb: Option<String>,
+}
+
+/// What a skill library offers an episode: agent-host knows nothing of the library's format;
+/// the `skills` crate implements this.
+pub trait SkillSource: Send + Sync {
+    /// Chooses skills for `task` given the episode's first observation (`first_obs`: the raw
+    /// frames as a run record keeps them) and `state` (its numeric state). `prompt` goes into
+    /// the system prompt, `log` into the run folder's skills.json and the viewer.
+    fn choose(&self, task: &str, first_obs: &Path, state: &Value) -> anyhow::Result<ChosenSkills>;
+}
+
+pub struct ChosenSkills {
+    pub prompt: String,
+    pub log: Value,
+    /// Files the stage programs may read, relative to the scratch folder (the skills' JSON).
+    pub files: Vec<(String, Vec<u8>)>,
+}
+
+/// A shared [`SkillSource`].
+#[derive(Clone)]
+pub struct Skills(pub std::sync::Arc<dyn SkillSource>);
+
+impl std::fmt::Debug for Skills {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Skills(..)")
+    }
 }
 
 /// A model's structured decision.
@@ -284,9 +313,28 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
     if reset["ok"] != 1 {
         bail!("reset before the episode failed: {}", reset["feedback"]);
     }
-    let first = worker.host_cmd(json!({"cmd": "observe", "images": true}))?;
+    // Raw frames (RGB, depth, intrinsics, extrinsics) at each round boundary, for extraction.
+    std::fs::create_dir_all(cfg.run_dir.join("rounds/000"))?;
+    let raw_at = |round: u32| cfg.run_dir.join(format!("rounds/{round:03}/obs.npz")).display().to_string();
+    let first = worker.host_cmd(json!({"cmd": "observe", "images": true, "raw": raw_at(0)}))?;
+    let mut obs_before = "rounds/000/obs.npz".to_string();
     let profile = first["state"]["backend"].as_str().unwrap_or("simulation").to_string();
-    let system = system_prompt(&cfg.root, &profile, &cfg.skills);
+    let skills_text = match &cfg.skills {
+        Some(Skills(source)) => {
+            let chosen = source.choose(&task, &cfg.run_dir.join("rounds/000/obs.npz"), &first["state"])?;
+            rec.file("skills.json", &serde_json::to_vec_pretty(&chosen.log)?)?;
+            for (rel, body) in &chosen.files {
+                let p = scratch.join(rel);
+                if let Some(d) = p.parent() {
+                    std::fs::create_dir_all(d)?;
+                }
+                write_atomic(&p, body)?;
+            }
+            chosen.prompt
+        }
+        None => String::new(),
+    };
+    let system = system_prompt(&cfg.root, &profile, &skills_text);
     rec.file("system_prompt.md", system.as_bytes())?;
     rec.file(
         "config.json",
@@ -294,6 +342,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
             "gym": cfg.gym, "scene": cfg.scene, "task": task, "endpoint": cfg.endpoint,
             "max_decisions": cfg.max_decisions, "control_steps": cfg.control_steps, "limits": cfg.limits,
             "lockstep": cfg.lockstep, "instance": instance, "sandbox": worker.enforced,
+            "seed": cfg.seed, "perturb": cfg.perturb, "skills": cfg.skills.is_some(),
         }))?
         .as_slice(),
     )?;
@@ -363,7 +412,8 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
                 let r = worker.run(code, &format!("stage-{executions}.py"), budget)?;
                 out.exec_s += r.wall_s;
                 out.violations += u32::from(r.violation.is_some());
-                let after = worker.host_cmd(json!({"cmd": "observe", "images": true}))?;
+                let after = worker.host_cmd(json!({"cmd": "observe", "images": true, "raw": raw_at(round)}))?;
+                rec.file(&format!("{dir}/calls.json"), &serde_json::to_vec(&r.calls)?)?;
                 let left = cfg.max_decisions.saturating_sub(out.responses);
                 text = feedback_text(executions, &r, &before, &after, budget.control_steps, left);
                 for (name, png) in images(&after) {
@@ -372,7 +422,12 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
                 }
                 let memory = crate::memory::collect(&scratch, &cfg.memory_dir, &mut records_taken);
                 record["exec"] = serde_json::to_value(&r)?;
+                record["state_before"] = before["state"].clone();
                 record["state_after"] = after["state"].clone();
+                record["obs_before"] = json!(obs_before);
+                record["obs_after"] = json!(format!("{dir}/obs.npz"));
+                record["calls"] = json!(format!("{dir}/calls.json"));
+                obs_before = format!("{dir}/obs.npz");
                 record["memory_added"] = json!(memory);
                 before = after;
             }

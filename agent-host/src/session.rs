@@ -43,6 +43,8 @@ pub struct EpisodeOpts {
     /// Placement perturbation drawn from the seed, as r2g-sim's `--perturb` takes it
     /// (sim_host::placement; `r2g` parses it before it gets here).
     pub perturb: Option<String>,
+    /// Chooses skills for the episode's prompt (the `skills` crate's selection); None: none.
+    pub skills: Option<crate::episode::Skills>,
 }
 
 /// The repo's scripted LLM server, replaying a recorded conversation; stopped on drop.
@@ -99,21 +101,24 @@ pub fn root() -> PathBuf {
     launch::gyms_dir().parent().map(Path::to_path_buf).unwrap_or_default()
 }
 
-pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
+/// An LLM endpoint for a run: a TOML file, or the scripted server replaying a recorded
+/// conversation (`scripted` = the gym's, `scripted:<file>`), started here and stopped when the
+/// returned guard drops.
+pub fn endpoint(
+    llm: &str,
+    provider: &str,
+    gym: &str,
+    default_script: Option<&Path>,
+    log: &Path,
+) -> anyhow::Result<(EndpointConfig, Option<Scripted>)> {
     let root = root();
-    let scene = launch::resolve_scene(&o.gym)?;
-    let gym = scene.parent().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
-    let run_dir = o.out.clone().unwrap_or_else(|| root.join("runs").join("episodes").join(format!("{gym}-{stamp}")));
-    std::fs::create_dir_all(&run_dir)?;
-    let run_dir = std::fs::canonicalize(&run_dir)?;
-    let (endpoint, _scripted) = if o.llm == "scripted" || o.llm.starts_with("scripted:") {
-        let script = o.llm.strip_prefix("scripted:").map(Path::new);
-        let s = Scripted::start(&root, &gym, script, Some(&run_dir.join("llm-log")))?;
+    if llm == "scripted" || llm.starts_with("scripted:") {
+        let script = llm.strip_prefix("scripted:").map(Path::new).or(default_script);
+        let s = Scripted::start(&root, gym, script, Some(log))?;
         // The scripted server checks that a key is sent, like a real endpoint; it is not secret.
         std::env::set_var("R2G_SCRIPTED_KEY", "scripted-key");
         let e = EndpointConfig {
-            provider: o.provider.clone(),
+            provider: provider.to_string(),
             base_url: format!("http://127.0.0.1:{}", s.port),
             model: format!("scripted-{gym}"),
             api_key_env: Some("R2G_SCRIPTED_KEY".into()),
@@ -123,30 +128,83 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
             retries: 2,
         };
         e.check()?;
-        (e, Some(s))
+        Ok((e, Some(s)))
     } else {
-        (EndpointConfig::load(Path::new(&o.llm))?, None)
-    };
-    let trace_dir = run_dir.join("episodes");
-    let instance = format!("ep{stamp}");
-    let opts = UpOptions {
-        scene: scene.clone(),
-        instance: instance.clone(),
-        mode: if o.wall { Mode::Wall } else { Mode::Lockstep },
-        render_hz: 10.0,
-        control_args: Vec::new(),
-        sim_args: {
-            let mut a =
-                vec!["--trace-dir".into(), trace_dir.display().to_string(), "--seed".into(), o.seed.to_string()];
-            if let Some(p) = &o.perturb {
-                a.extend(["--perturb".into(), p.clone()]);
-            }
-            a
-        },
-        robot_config: Some(o.robot_config.clone().unwrap_or_else(launch::default_robot_config)),
-        ready_timeout: Duration::from_secs(60),
-    };
-    let mut inst = Instance::up(&opts)?;
+        Ok((EndpointConfig::load(Path::new(llm))?, None))
+    }
+}
+
+/// A gym instance started for one run (lockstep unless `wall`), its episodes judged into
+/// `<run_dir>/episodes`.
+pub struct GymRun {
+    pub inst: Instance,
+    pub instance: String,
+    pub trace_dir: PathBuf,
+    pub scene: PathBuf,
+    pub gym: String,
+}
+
+/// Where a run's objects start and how it is driven.
+#[derive(Debug, Clone, Default)]
+pub struct GymSetup {
+    pub wall: bool,
+    pub seed: u64,
+    pub perturb: Option<String>,
+    pub robot_config: Option<PathBuf>,
+}
+
+impl GymRun {
+    pub fn start(gym_or_scene: &str, run_dir: &Path, setup: &GymSetup) -> anyhow::Result<Self> {
+        let scene = launch::resolve_scene(gym_or_scene)?;
+        let gym =
+            scene.parent().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let trace_dir = run_dir.join("episodes");
+        let instance = format!("ep{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
+        let mut sim_args =
+            vec!["--trace-dir".into(), trace_dir.display().to_string(), "--seed".into(), setup.seed.to_string()];
+        if let Some(p) = &setup.perturb {
+            sim_args.extend(["--perturb".into(), p.clone()]);
+        }
+        let opts = UpOptions {
+            scene: scene.clone(),
+            instance: instance.clone(),
+            mode: if setup.wall { Mode::Wall } else { Mode::Lockstep },
+            render_hz: 10.0,
+            control_args: Vec::new(),
+            sim_args,
+            robot_config: Some(setup.robot_config.clone().unwrap_or_else(launch::default_robot_config)),
+            ready_timeout: Duration::from_secs(60),
+        };
+        let inst = Instance::up(&opts)?;
+        Ok(Self { inst, instance, trace_dir, scene, gym })
+    }
+
+    /// Stops the instance, which ends (and judges) the last episode; that verdict.
+    pub fn finish(mut self) -> anyhow::Result<Value> {
+        // Only a verdict written after this point is the last episode's (each reset() wrote one before).
+        let judged_before = episode::verdict_count(&self.trace_dir);
+        self.inst.stop();
+        episode::newest_verdict(&self.trace_dir, judged_before, Duration::from_secs(10))
+    }
+}
+
+/// A fresh run folder: `out`, or `runs/<kind>/<gym>-<pid>-<ms>`, canonical.
+pub fn run_folder(out: Option<&Path>, kind: &str, gym: &str) -> anyhow::Result<PathBuf> {
+    let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
+    let dir = out.map_or_else(|| root().join("runs").join(kind).join(format!("{gym}-{stamp}")), Path::to_path_buf);
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    Ok(std::fs::canonicalize(&dir)?)
+}
+
+pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
+    let root = root();
+    let scene = launch::resolve_scene(&o.gym)?;
+    let gym = scene.parent().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let run_dir = run_folder(o.out.as_deref(), "episodes", &gym)?;
+    let (endpoint, _scripted) = endpoint(&o.llm, &o.provider, &gym, None, &run_dir.join("llm-log"))?;
+    let setup =
+        GymSetup { wall: o.wall, seed: o.seed, perturb: o.perturb.clone(), robot_config: o.robot_config.clone() };
+    let gym_run = GymRun::start(&o.gym, &run_dir, &setup)?;
     let cfg = EpisodeConfig {
         gym: gym.clone(),
         scene,
@@ -159,15 +217,14 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
         lockstep: !o.wall,
         robot_config: o.robot_config.clone(),
         memory_dir: o.memory.clone().unwrap_or_else(|| root.join("robot-skill/memory")),
-        skills: String::new(),
+        skills: o.skills.clone(),
+        seed: o.seed,
+        perturb: o.perturb.clone(),
     };
-    let result = episode::run(&cfg, &instance);
-    // Stopping the instance ends the episode: sim-host judges it from its native trace. Only a
-    // verdict written after this point is the last episode's (each reset() wrote one before).
-    let judged_before = episode::verdict_count(&trace_dir);
-    inst.stop();
+    let result = episode::run(&cfg, &gym_run.instance);
+    let eval = gym_run.finish();
     let mut result = result?;
-    let eval = episode::newest_verdict(&trace_dir, judged_before, Duration::from_secs(10))?;
+    let eval = eval?;
     result.success = eval["success"].as_bool().unwrap_or(false);
     result.evaluation = eval;
     std::fs::write(run_dir.join("result.json"), serde_json::to_vec_pretty(&result)?)?;

@@ -90,6 +90,10 @@ pub struct ExecResult {
     pub budget_refusals: u64,
     /// Output written straight to the worker's descriptors (bypassing sys.stdout), tail only.
     pub raw_output: String,
+    /// The program's reset/post_actions calls as the proxy logged them (targets, reply,
+    /// feedback, robot time before and after); the run record keeps them in `calls.json`.
+    #[serde(skip)]
+    pub calls: Vec<serde_json::Value>,
 }
 
 /// The trusted proxy: a Python process holding the real `robo` connection.
@@ -547,6 +551,7 @@ impl Worker {
         r.control_steps = n("steps");
         r.robot_calls = n("calls");
         r.budget_refusals = n("refused");
+        r.calls = v.get("log").and_then(|l| l.as_array()).cloned().unwrap_or_default();
     }
 }
 

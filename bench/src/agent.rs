@@ -33,6 +33,7 @@ pub fn run(episodes: u32) -> anyhow::Result<Value> {
             memory: Some(dir.join("memory")),
             seed: 0,
             perturb: None,
+            skills: None,
         };
         let r = session::episode(&o)?;
         if !r.success {

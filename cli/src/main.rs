@@ -11,6 +11,7 @@ use runtime::launch::{self, Instance, UpOptions};
 
 mod kin;
 mod service;
+mod skills_cmd;
 
 /// Counts allocations inside ticks, so `bench tick-compute` can report them.
 #[global_allocator]
@@ -105,6 +106,14 @@ enum Cmd {
     Episode {
         #[command(flatten)]
         opts: EpisodeArgs,
+        /// After the episode, extract skills from it into the library (as `r2g skills extract`).
+        #[arg(long)]
+        learn: bool,
+        /// Endpoint for the extraction (default: scripted, the gym's recorded extraction answers).
+        #[arg(long, default_value = "scripted")]
+        learn_llm: String,
+        #[command(flatten)]
+        admit: skills_cmd::AdmitArgs,
     },
     /// Several episodes and their metrics (success rate, responses, tokens, time split). Exits 1
     /// when no episode could run at all (every one ended in an error, e.g. an unreachable
@@ -114,6 +123,21 @@ enum Cmd {
         episodes: u32,
         #[command(flatten)]
         opts: EpisodeArgs,
+        /// `learn`: the paper's protocol — per seed, an episode without skills, extraction from
+        /// it, then an episode on the same seed with the selected skills; figures per arm.
+        #[arg(long = "skills-protocol", value_name = "learn")]
+        protocol: Option<String>,
+        /// Endpoint for the extractions of `--skills-protocol learn`.
+        #[arg(long, default_value = "scripted")]
+        learn_llm: String,
+        #[command(flatten)]
+        admit: skills_cmd::AdmitArgs,
+    },
+    /// The skill library (robot-skill/skills by default): list, show, extract from a run,
+    /// admit, run without a model, select.
+    Skills {
+        #[command(subcommand)]
+        which: skills_cmd::SkillsCmd,
     },
     /// Write (or rewrite) the static HTML viewer of a run folder.
     View { run_dir: std::path::PathBuf },
@@ -229,6 +253,30 @@ struct EpisodeArgs {
     memory: Option<std::path::PathBuf>,
     #[command(flatten)]
     placement: PlacementArgs,
+    /// `use`: give the episode skills selected from the library (see --library); `off`: none.
+    #[arg(long, default_value = "off", value_parser = ["off", "use"])]
+    skills: String,
+    /// The skill library (default: robot-skill/skills).
+    #[arg(long)]
+    library: Option<std::path::PathBuf>,
+}
+
+impl EpisodeArgs {
+    fn library(&self) -> std::path::PathBuf {
+        self.library.clone().unwrap_or_else(skills::learn::default_library)
+    }
+
+    /// The episode options, with the library's skills when `--skills use`.
+    fn episode_opts(self) -> anyhow::Result<session::EpisodeOpts> {
+        let lib = self.library();
+        let use_skills = self.skills == "use";
+        let o: session::EpisodeOpts = self.try_into()?;
+        if use_skills {
+            skills::learn::with_skills(&o, &lib)
+        } else {
+            Ok(o)
+        }
+    }
 }
 
 impl TryFrom<EpisodeArgs> for session::EpisodeOpts {
@@ -249,6 +297,7 @@ impl TryFrom<EpisodeArgs> for session::EpisodeOpts {
             memory: a.memory,
             seed: a.placement.seed,
             perturb: a.placement.perturb.map(|p| p.to_string()),
+            skills: None,
         })
     }
 }
@@ -464,11 +513,49 @@ fn main() {
             println!("{reason}");
             0
         }),
-        Cmd::Episode { opts } => opts.try_into().and_then(|o| session::episode(&o)).and_then(|r| {
-            println!("{}", serde_json::to_string(&r)?);
-            Ok(if r.success { 0 } else { 1 })
-        }),
-        Cmd::Batch { episodes, opts } => opts.try_into().and_then(|o| {
+        Cmd::Episode { opts, learn, learn_llm, admit } => {
+            let library = opts.library();
+            opts.episode_opts().and_then(|o| session::episode(&o)).and_then(|r| {
+                println!("{}", serde_json::to_string(&r)?);
+                if learn {
+                    let lo = skills::learn::LearnOpts {
+                        admit: admit.opts(),
+                        ..skills::learn::LearnOpts::new(library, &learn_llm)
+                    };
+                    let l = skills::learn::learn(std::path::Path::new(&r.run_dir), &lo)?;
+                    eprintln!(
+                        "r2g episode --learn: wrote {:?}, dropped {}, admissions {:?}",
+                        l.merge.written,
+                        l.merge.dropped.len(),
+                        l.admissions.iter().map(|a| (&a.skill, a.validated)).collect::<Vec<_>>()
+                    );
+                }
+                Ok(if r.success { 0 } else { 1 })
+            })
+        }
+        Cmd::Skills { which } => skills_cmd::run(which),
+        Cmd::Batch { episodes, opts, protocol: Some(p), learn_llm, admit } => {
+            if p != "learn" {
+                eprintln!("r2g: error: --skills-protocol takes `learn`");
+                std::process::exit(2);
+            }
+            let library = opts.library();
+            let lo =
+                skills::learn::LearnOpts { admit: admit.opts(), ..skills::learn::LearnOpts::new(library, &learn_llm) };
+            opts.try_into().and_then(|o: session::EpisodeOpts| {
+                skills::learn::protocol(&o, episodes, &lo, |arm, i, r| match r {
+                    Ok(v) => {
+                        eprintln!("r2g batch: seed {i} {arm}: success {} in {} responses", v["success"], v["responses"])
+                    }
+                    Err(e) => eprintln!("r2g batch: seed {i} {arm}: {e:#}"),
+                })
+                .map(|v| {
+                    println!("{v}");
+                    0
+                })
+            })
+        }
+        Cmd::Batch { episodes, opts, .. } => opts.episode_opts().and_then(|o| {
             session::batch(&o, episodes, |i, r| match r {
                 Ok(r) => eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses),
                 Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),

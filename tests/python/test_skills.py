@@ -1,0 +1,203 @@
+"""Skills (issue 19): binding object-relative rules, the base-frame lint, and the whole loop on
+real processes — a scripted episode (SYNTHETIC: a recorded conversation written by us), skill
+extraction with recorded extraction answers (SYNTHETIC as well), admission by model-free runs
+on held-out perturbed seeds, `r2g skills run`, selection into a later episode, and the
+`--skills-protocol learn` batch. Figures from these runs are mechanics only: no model took part."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import R2G, ROOT
+from test_agent_episode import chromium_dom
+
+sys.path.insert(0, str(ROOT / "agent-host" / "py" / "lib"))
+
+import robo_skills as rs  # noqa: E402
+from robo_perception.transforms import axis_angle_to_matrix, pose_to_matrix  # noqa: E402
+
+LIB = ROOT / "agent-host" / "py" / "lib"
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def random_anchor(rng: np.random.Generator, symmetry: str) -> rs.Anchor:
+    axes = axis_angle_to_matrix([0.0, 0.0, rng.uniform(-math.pi, math.pi)])
+    side = rng.uniform(0.03, 0.12)
+    ext = np.array([side, side * (1.0 if symmetry != "box" else rng.uniform(0.3, 0.8)), rng.uniform(0.01, 0.1)])
+    return rs.Anchor(np.array([rng.uniform(0.3, 0.7), rng.uniform(-0.3, 0.3), ext[2] / 2]), axes, ext,
+                     np.array([0.0, 0.0, 1.0]), symmetry)
+
+
+def test_bound_targets_move_with_the_anchors_under_rigid_transforms() -> None:
+    """Property: for random rules, objects (box, square, round), reference TCPs and random rigid
+    transforms T of the whole scene, bind(rule, T·object, T·reference) = T·bind(rule, object,
+    reference) to 1e-9."""
+    rng = np.random.default_rng(19)
+    worst = 0.0
+    for trial in range(600):
+        sym = ("box", "square", "round")[trial % 3]
+        a = random_anchor(rng, sym)
+        ref = pose_to_matrix([rng.uniform(0.2, 0.6), rng.uniform(-0.3, 0.3), rng.uniform(0.1, 0.5), math.pi, 0.0,
+                              rng.uniform(-1.0, 1.0)])
+        rule = {"actor": ("tcp", "fingertips")[trial % 2], "anchor": {"object": "o", "feature": rs.FEATURES[trial % 4]},
+                "offset_m": list(rng.uniform(-0.1, 0.1, 3)), "yaw_rad": rng.uniform(-math.pi, math.pi),
+                "tilt_rad": [math.pi + rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), 0.0]}
+        T = np.eye(4)
+        T[:3, :3] = random_rotation(rng)
+        T[:3, 3] = rng.normal(size=3)
+        moved = rs.bind(rule, a.transformed(T), T @ ref)
+        worst = max(worst, float(np.abs(moved - T @ rs.bind(rule, a, ref)).max()))
+    assert worst < 1e-9, worst
+
+
+def test_relate_then_bind_gives_the_target_back() -> None:
+    rng = np.random.default_rng(7)
+    worst = 0.0
+    for trial in range(300):
+        a = random_anchor(rng, ("box", "square", "round")[trial % 3])
+        ref = pose_to_matrix([rng.uniform(0.2, 0.6), rng.uniform(-0.3, 0.3), rng.uniform(0.1, 0.5), math.pi, 0.0, 0.3])
+        target = pose_to_matrix([a.center[0] + rng.uniform(-0.05, 0.05), a.center[1] + rng.uniform(-0.05, 0.05),
+                                 rng.uniform(0.02, 0.2), math.pi, 0.0, rng.uniform(-1.0, 1.0)])
+        for feature in rs.FEATURES:
+            rule = rs.relate(target, a, feature, ref, actor=("tcp", "fingertips")[trial % 2])
+            dp, dr = rs.same_grasp(rs.bind(rule, a, ref), target)
+            worst = max(worst, dp + dr)
+    assert worst < 1e-5, worst
+
+
+@pytest.mark.parametrize("code", [
+    "goal = [0.5, -0.12, 0.1]\n",
+    "post_actions({'actions': [[0.5, 0.1, 0.2, 3.14, 0, 0, 1]], 'type': 'ee_pose', 'freq': ''})\n",
+    "g = list(here)\ng[2] = 0.3\n",
+    "t = np.array([0.45, 0.1, 0.2])\n",
+    "t = (0.45, -0.1, 0.2, 3.1, 0.0, 0.0)\n",
+])
+def test_the_lint_refuses_base_frame_numbers_on_the_parsed_code(code: str) -> None:
+    with pytest.raises(rs.LintError, match="line"):
+        rs.check_code(code)
+
+
+@pytest.mark.parametrize("code", [
+    "here = state['ee_pose']\ngoal = list(here)\ngoal[2] += 0.1\n",
+    "p = np.array(here) + [0, 0, 0.1]\n",
+    "q = np.asarray(here) - np.array([0.0, 0.0, 0.05])\n",
+    "rule = dict(offset_m=[0.0, 0.01, 0.12])\n",
+    "axis = [0, 0, 1]\n",
+    "# a comment: [0.5, 0.1, 0.2]\nn = 12\nif z > 0.02:\n    pass\n",
+    "s = '[0.5, 0.1, 0.2]'\n",
+])
+def test_the_lint_allows_differences_rule_fields_axes_and_text(code: str) -> None:
+    rs.check_code(code)
+
+
+def test_code_that_does_not_compile_is_refused_with_the_line() -> None:
+    with pytest.raises(rs.LintError, match="line 2"):
+        rs.check_code("x = 1\ndef f(:\n")
+
+
+# ---- the whole loop on real processes ----
+
+def r2g(*args: str, timeout: float = 600) -> tuple[int, str, str]:
+    p = subprocess.run([str(R2G), *args], capture_output=True, text=True, timeout=timeout)
+    return p.returncode, p.stdout, p.stderr
+
+
+def last_json(text: str) -> dict:
+    return json.loads(text.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def learned(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """One scripted episode of pick_block_plate, and a skill extracted from it into a fresh
+    library and admitted by two model-free runs on held-out seeds with objects moved up to 3 cm."""
+    tmp = tmp_path_factory.mktemp("skills")
+    rc, out, err = r2g("episode", "pick_block_plate", "--llm", "scripted", "--out", str(tmp / "ep"))
+    assert rc == 0, err[-3000:]
+    lib = tmp / "library"
+    rc, out, err = r2g("skills", "extract", str(tmp / "ep"), "--library", str(lib), "--admit-runs", "2")
+    assert rc == 0, err[-3000:]
+    return {"tmp": tmp, "lib": lib, "extract": last_json(out), "episode": tmp / "ep"}
+
+
+def test_extraction_labels_rounds_and_writes_an_admitted_skill(learned: dict) -> None:
+    x = learned["extract"]
+    assert x["positive"] >= 5 and x["negative"] == 0, x
+    assert x["written"][0][:2] == ["add", "pick-place-on-plate"], x
+    adm = x["admissions"][0]
+    assert adm["validated"], adm
+    report = json.loads((learned["episode"] / "extraction.json").read_text())
+    labels = {lab["round"]: lab["outcome"] for lab in report["labels"]}
+    assert labels[1] == "unknown" and labels[3] == "positive", labels
+    versions = sorted((learned["lib"] / "pick-place-on-plate").glob("v*.json"))
+    assert [v.name for v in versions] == ["v0001.json", "v0002.json"]
+    skill = json.loads(versions[-1].read_text())
+    assert skill["status"] == "validated"
+    runs = [e for e in skill["evidence"] if e["source"] == "validation"]
+    assert len(runs) == 2 and all(e["seed"] != 0 for e in runs)
+    # No rule holds a base-frame position: each is relative to one of the skill's objects.
+    for rule in skill["rules"]:
+        assert rule["anchor"]["object"] in skill["objects"]
+        assert np.linalg.norm(rule["offset_m"]) < 0.4
+    rc, out, err = r2g("skills", "list", "--library", str(learned["lib"]))
+    assert rc == 0 and out.startswith("pick-place-on-plate v2 Validated 2/2"), out
+
+
+def test_extracting_the_same_record_again_changes_nothing(learned: dict) -> None:
+    before = sorted(p.name for p in (learned["lib"] / "pick-place-on-plate").glob("v*.json"))
+    rc, out, err = r2g("skills", "extract", str(learned["episode"]), "--library", str(learned["lib"]), "--admit-runs", "0")
+    assert rc == 0, err[-2000:]
+    x = last_json(out)
+    assert x["written"] == [] and x["unchanged"] == 1, x
+    assert sorted(p.name for p in (learned["lib"] / "pick-place-on-plate").glob("v*.json")) == before
+
+
+def test_a_malformed_or_bogus_extraction_answer_changes_nothing(learned: dict, tmp_path: Path) -> None:
+    before = sorted(p.name for p in (learned["lib"] / "pick-place-on-plate").glob("v*.json"))
+    for name, answer, says in [
+        ("notjson", "Sure! Here are the operations: add a skill.", "holds no JSON object"),
+        ("unknown", json.dumps({"operations": [{"op": "support", "skill": "pick-place-on-plate", "evidence": ["E42"]}]}),
+         "cites unknown evidence"),
+    ]:
+        script = tmp_path / f"{name}.json"
+        script.write_text(json.dumps({"gym": "pick_block_plate", "model": "synthetic", "responses": [answer]}))
+        rc, out, err = r2g("skills", "extract", str(learned["episode"]), "--library", str(learned["lib"]),
+                           "--llm", f"scripted:{script}", "--admit-runs", "0")
+        assert rc == 0, err[-2000:]
+        assert says in err, err[-2000:]
+        assert last_json(out)["written"] == []
+    assert sorted(p.name for p in (learned["lib"] / "pick-place-on-plate").glob("v*.json")) == before
+    events = [json.loads(line) for line in (learned["lib"] / "events.jsonl").read_text().splitlines()]
+    assert sum(e["event"] == "dropped" for e in events) >= 2
+
+
+def test_the_skill_runs_without_a_model_where_the_objects_moved(learned: dict) -> None:
+    rc, out, err = r2g("skills", "run", "pick-place-on-plate", "pick_block_plate", "--library", str(learned["lib"]),
+                       "--seed", "4242", "--perturb", "xy=0.05,yaw=30", "--out", str(learned["tmp"] / "run"))
+    r = last_json(out)
+    assert r["responses"] == 0 and r["tokens_in"] == 0 and r["tokens_out"] == 0
+    assert rc == 0 and r["success"], (r["stop_reason"], err[-2000:])
+    assert (learned["tmp"] / "run" / "result.json").is_file()
+
+
+def test_an_episode_given_skills_logs_its_selection_and_the_viewer_shows_it(learned: dict) -> None:
+    out_dir = learned["tmp"] / "with"
+    rc, out, err = r2g("episode", "pick_block_plate", "--llm", "scripted", "--skills", "use", "--library",
+                       str(learned["lib"]), "--out", str(out_dir))
+    assert rc == 0, err[-3000:]
+    sel = json.loads((out_dir / "skills.json").read_text())
+    assert sel["chosen"] == ["pick-place-on-plate"], sel
+    assert "box" in sel["perceived_classes"]
+    assert (out_dir / "scratch" / "skills" / "pick-place-on-plate.json").is_file()
+    assert "### skill pick-place-on-plate" in (out_dir / "system_prompt.md").read_text()
+    dom = chromium_dom(out_dir / "index.html")
+    assert "Skills selected: pick-place-on-plate" in dom, dom[-3000:]
