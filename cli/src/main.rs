@@ -550,6 +550,23 @@ fn main() {
                     Err(e) => eprintln!("r2g batch: seed {i} {arm}: {e:#}"),
                 })
                 .map(|v| {
+                    eprintln!("{}", v["label"].as_str().unwrap_or_default());
+                    eprintln!(
+                        "{:<16} {:>8} {:>10} {:>11} {:>10} {:>8}",
+                        "arm", "success", "responses", "tokens in", "tokens out", "wall s"
+                    );
+                    for (name, k) in [("without skills", "without_skills"), ("with skills", "with_skills")] {
+                        let a = &v[k];
+                        let f = |m: &str| a[m].as_f64().unwrap_or(0.0);
+                        eprintln!(
+                            "{name:<16} {:>8.2} {:>10.1} {:>11.0} {:>10.0} {:>8.1}",
+                            f("success_rate"),
+                            f("responses_mean"),
+                            f("tokens_in_mean"),
+                            f("tokens_out_mean"),
+                            f("wall_s_mean")
+                        );
+                    }
                     println!("{v}");
                     0
                 })
