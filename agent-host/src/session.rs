@@ -159,7 +159,7 @@ impl GymRun {
         let gym =
             scene.parent().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let trace_dir = run_dir.join("episodes");
-        let instance = format!("ep{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
+        let instance = format!("ep{}-{}", std::process::id(), unique());
         let mut sim_args =
             vec!["--trace-dir".into(), trace_dir.display().to_string(), "--seed".into(), setup.seed.to_string()];
         if let Some(p) = &setup.perturb {
@@ -188,9 +188,16 @@ impl GymRun {
     }
 }
 
-/// A fresh run folder: `out`, or `runs/<kind>/<gym>-<pid>-<ms>`, canonical.
+/// A number no other call in this process returns: milliseconds since boot, and a count for
+/// runs started in the same millisecond (threads of one benchmark).
+fn unique() -> String {
+    static COUNT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    format!("{}-{}", ipc_schema::monotonic_ns() / 1_000_000, COUNT.fetch_add(1, std::sync::atomic::Ordering::Relaxed))
+}
+
+/// A fresh run folder: `out`, or `runs/<kind>/<gym>-<pid>-<ms>-<n>`, canonical.
 pub fn run_folder(out: Option<&Path>, kind: &str, gym: &str) -> anyhow::Result<PathBuf> {
-    let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
+    let stamp = format!("{}-{}", std::process::id(), unique());
     let dir = out.map_or_else(|| root().join("runs").join(kind).join(format!("{gym}-{stamp}")), Path::to_path_buf);
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     Ok(std::fs::canonicalize(&dir)?)

@@ -10,6 +10,7 @@ pub mod ipc;
 pub mod perception;
 pub mod robo;
 pub mod sim;
+pub mod skills;
 pub mod soak;
 pub mod tick;
 

@@ -441,6 +441,24 @@ enum BenchCmd {
         #[arg(long, default_value_t = 10_000)]
         count: usize,
     },
+    /// Skill transfer: per gym, a skill extracted from one scripted episode, run without a model on
+    /// N seeds with the objects moved (default ±5 cm, ±30°), against the same procedure replaying
+    /// the episode's absolute targets, natively judged (gyms with recorded conversations).
+    Skills {
+        #[arg(long, value_delimiter = ',', default_value = "pick_block_plate")]
+        gyms: Vec<String>,
+        #[arg(long, default_value_t = 50)]
+        seeds: u64,
+        #[arg(long, default_value_t = 5001)]
+        first_seed: u64,
+        #[arg(long, default_value = "xy=0.05,yaw=30")]
+        perturb: sim_host::placement::Perturbation,
+        /// Runs at a time (more than the cores is oversubscription).
+        #[arg(long, default_value_t = 2)]
+        jobs: usize,
+        #[arg(long, default_value = "bench-report/skills")]
+        out: std::path::PathBuf,
+    },
     /// Physics in lockstep with the 1 kHz controller: real-time factor per gym while replaying
     /// its demonstration, beside MuJoCo stepping alone; and render time per 640×480 frame,
     /// RGB and RGB-D.
@@ -601,6 +619,10 @@ fn main() {
         Cmd::Replay { gym, placement, do_nothing, out } => replay(&gym, &placement, do_nothing, &out),
         Cmd::AuthorDemo { gym } => author_demo(&gym),
         Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => bench::sim::run(&gyms, frames).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::Skills { gyms, seeds, first_seed, perturb, jobs, out } } => {
+            let o = bench::skills::Options { gyms, seeds, first_seed, perturb: perturb.to_string(), jobs, out };
+            bench::skills::run(&o).map(|_| 0)
+        }
         Cmd::Kin { which: KinCmd::Fk { args } } => kin::run(false, &args.robot, &args.tcp, args.frame.as_deref()),
         Cmd::Kin { which: KinCmd::Ik { args } } => kin::run(true, &args.robot, &args.tcp, args.frame.as_deref()),
         Cmd::Bench { which: BenchCmd::Ik { targets, count } } => bench::ik::run(targets.as_deref(), count).map(|_| 0),
