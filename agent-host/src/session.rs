@@ -1,13 +1,15 @@
 //! Whole runs of the agent host (`r2g episode`, `r2g batch`, `r2g exec`): the stage-code loop
 //! against a gym instance started here, with a configured LLM endpoint or the scripted one
-//! (`scripted`: a recorded conversation served on loopback), judged afterwards by the native
-//! evaluator; and one program in the sandbox against a running instance.
+//! (`scripted`: a recorded conversation served on loopback), a live endpoint whose answers are
+//! recorded (`record:`) or a cassette replayed without a network (`replay:`), judged afterwards
+//! by the native evaluator; and one program in the sandbox against a running instance.
 
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
+use crate::cassette::{CassetteMode, CassetteSpec};
 use crate::episode::{self, EpisodeConfig, EpisodeResult};
 use crate::llm::EndpointConfig;
 use anyhow::{bail, Context};
@@ -21,7 +23,9 @@ pub struct EpisodeOpts {
     /// Gym name (see `r2g gyms`), gym folder, or scene file.
     pub gym: String,
     /// An endpoint TOML file (provider, base_url, model, api_key_env, ...), "scripted" (the
-    /// gym's recorded conversation) or "scripted:<conversation.json>".
+    /// gym's recorded conversation), "scripted:<conversation.json | cassette.jsonl>",
+    /// "record:<endpoint.toml>" (answers recorded to `<run>/cassette.jsonl`) or
+    /// "replay:<cassette.jsonl>".
     pub llm: String,
     /// Wire format for `--llm scripted`: openai or anthropic.
     pub provider: String,
@@ -107,7 +111,7 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
     let run_dir = o.out.clone().unwrap_or_else(|| root.join("runs").join("episodes").join(format!("{gym}-{stamp}")));
     std::fs::create_dir_all(&run_dir)?;
     let run_dir = std::fs::canonicalize(&run_dir)?;
-    let (endpoint, _scripted) = if o.llm == "scripted" || o.llm.starts_with("scripted:") {
+    let (endpoint, _scripted, source) = if o.llm == "scripted" || o.llm.starts_with("scripted:") {
         let script = o.llm.strip_prefix("scripted:").map(Path::new);
         let s = Scripted::start(&root, &gym, script, Some(&run_dir.join("llm-log")))?;
         // The scripted server checks that a key is sent, like a real endpoint; it is not secret.
@@ -121,11 +125,22 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
             max_tokens: 4096,
             timeout_s: 60.0,
             retries: 2,
+            cassette: None,
         };
         e.check()?;
-        (e, Some(s))
+        (e, Some(s), "scripted")
+    } else if let Some(toml) = o.llm.strip_prefix("record:") {
+        let mut e = EndpointConfig::load(Path::new(toml))?;
+        e.cassette = Some(CassetteSpec { mode: CassetteMode::Record, path: run_dir.join("cassette.jsonl") });
+        (e, None, "live")
+    } else if let Some(path) = o.llm.strip_prefix("replay:") {
+        // Read whole here: a malformed cassette is refused before the gym starts.
+        let path = std::fs::canonicalize(path).with_context(|| format!("the cassette {path}"))?;
+        let mut e = crate::cassette::Player::open(&path)?.endpoint;
+        e.model = format!("replayed:{}", e.model);
+        (e, None, "replayed")
     } else {
-        (EndpointConfig::load(Path::new(&o.llm))?, None)
+        (EndpointConfig::load(Path::new(&o.llm))?, None, "live")
     };
     let trace_dir = run_dir.join("episodes");
     let instance = format!("ep{stamp}");
@@ -167,6 +182,11 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
     let judged_before = episode::verdict_count(&trace_dir);
     inst.stop();
     let mut result = result?;
+    result.llm_source = source.into();
+    if source == "replayed" && result.stop_reason.starts_with(episode::ENDPOINT_FAILED) {
+        // Not a task failure: the replay no longer matches its recording.
+        bail!("{} (run folder {})", result.stop_reason, run_dir.display());
+    }
     let eval = episode::newest_verdict(&trace_dir, judged_before, Duration::from_secs(10))?;
     result.success = eval["success"].as_bool().unwrap_or(false);
     result.evaluation = eval;
