@@ -117,6 +117,9 @@ pub struct EpisodeResult {
     pub executions: u32,
     pub violations: u32,
     pub stop_reason: String,
+    /// Where the answers came from: "live" (an endpoint, recorded or not), "scripted" (a
+    /// conversation written by us) or "replayed" (a cassette).
+    pub llm_source: String,
     pub run_dir: String,
     pub evaluation: Value,
 }
@@ -202,14 +205,29 @@ fn images(obs: &Value) -> Vec<(String, Vec<u8>)> {
     out
 }
 
-fn feedback_text(n: u32, r: &ExecResult, before: &Value, after: &Value, budget: u64, left: u32) -> String {
+fn feedback_text(
+    n: u32,
+    r: &ExecResult,
+    before: &Value,
+    after: &Value,
+    budget: u64,
+    left: u32,
+    lockstep: bool,
+) -> String {
+    // In lockstep the wall clock says nothing about the robot and would make each request
+    // differ from run to run (a replayed cassette needs the same requests): simulated time.
+    let took = if lockstep {
+        let t = |s: &Value| s["state"]["timestamp"].as_f64().unwrap_or(0.0);
+        format!("{:.3} s simulated", t(after) - t(before))
+    } else {
+        format!("{:.1} s", r.wall_s)
+    };
     let mut t = format!(
-        "Stage program {n} ended: {}{}; control steps used {} of {budget}; robot calls {}; {:.1} s.\n",
+        "Stage program {n} ended: {}{}; control steps used {} of {budget}; robot calls {}; {took}.\n",
         r.exit,
         r.exit_code.map(|c| format!(" (code {c})")).unwrap_or_default(),
         r.control_steps,
         r.robot_calls,
-        r.wall_s
     );
     if let Some(v) = &r.violation {
         t.push_str(&format!("SANDBOX: {v}\n"));
@@ -415,7 +433,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
                 let after = worker.host_cmd(json!({"cmd": "observe", "images": true, "raw": raw_at(round)}))?;
                 rec.file(&format!("{dir}/calls.json"), &serde_json::to_vec(&r.calls)?)?;
                 let left = cfg.max_decisions.saturating_sub(out.responses);
-                text = feedback_text(executions, &r, &before, &after, budget.control_steps, left);
+                text = feedback_text(executions, &r, &before, &after, budget.control_steps, left, cfg.lockstep);
                 for (name, png) in images(&after) {
                     rec.file(&format!("{dir}/{name}.png"), &png)?;
                     attach.push(Part::Png(png));

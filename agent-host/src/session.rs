@@ -1,13 +1,15 @@
 //! Whole runs of the agent host (`r2g episode`, `r2g batch`, `r2g exec`): the stage-code loop
 //! against a gym instance started here, with a configured LLM endpoint or the scripted one
-//! (`scripted`: a recorded conversation served on loopback), judged afterwards by the native
-//! evaluator; and one program in the sandbox against a running instance.
+//! (`scripted`: a recorded conversation served on loopback), a live endpoint whose answers are
+//! recorded (`record:`) or a cassette replayed without a network (`replay:`), judged afterwards
+//! by the native evaluator; and one program in the sandbox against a running instance.
 
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
+use crate::cassette::{CassetteMode, CassetteSpec};
 use crate::episode::{self, EpisodeConfig, EpisodeResult};
 use crate::llm::EndpointConfig;
 use anyhow::{bail, Context};
@@ -21,7 +23,9 @@ pub struct EpisodeOpts {
     /// Gym name (see `r2g gyms`), gym folder, or scene file.
     pub gym: String,
     /// An endpoint TOML file (provider, base_url, model, api_key_env, ...), "scripted" (the
-    /// gym's recorded conversation) or "scripted:<conversation.json>".
+    /// gym's recorded conversation), "scripted:<conversation.json | cassette.jsonl>",
+    /// "record:<endpoint.toml>" (answers recorded to `<run>/cassette.jsonl`) or
+    /// "replay:<cassette.jsonl>".
     pub llm: String,
     /// Wire format for `--llm scripted`: openai or anthropic.
     pub provider: String,
@@ -101,20 +105,23 @@ pub fn root() -> PathBuf {
     launch::gyms_dir().parent().map(Path::to_path_buf).unwrap_or_default()
 }
 
-/// An LLM endpoint for a run: a TOML file, or the scripted server replaying a recorded
-/// conversation (`scripted` = the gym's, `scripted:<file>`), started here and stopped when the
-/// returned guard drops.
+/// An LLM endpoint for a run and what answers it (`live`, `scripted`, `replayed`): a TOML file;
+/// `record:<toml>` (that endpoint, every exchange kept in `<run_dir>/cassette.jsonl`);
+/// `replay:<cassette>` (answers from a cassette, no network); or the scripted server replaying a
+/// recorded conversation (`scripted` = `default_script` or the gym's, `scripted:<file>`),
+/// started here and stopped when the returned guard drops.
 pub fn endpoint(
     llm: &str,
     provider: &str,
     gym: &str,
     default_script: Option<&Path>,
-    log: &Path,
-) -> anyhow::Result<(EndpointConfig, Option<Scripted>)> {
+    run_dir: &Path,
+) -> anyhow::Result<(EndpointConfig, Option<Scripted>, &'static str)> {
     let root = root();
+    let log = run_dir.join("llm-log");
     if llm == "scripted" || llm.starts_with("scripted:") {
         let script = llm.strip_prefix("scripted:").map(Path::new).or(default_script);
-        let s = Scripted::start(&root, gym, script, Some(log))?;
+        let s = Scripted::start(&root, gym, script, Some(&log))?;
         // The scripted server checks that a key is sent, like a real endpoint; it is not secret.
         std::env::set_var("R2G_SCRIPTED_KEY", "scripted-key");
         let e = EndpointConfig {
@@ -126,11 +133,22 @@ pub fn endpoint(
             max_tokens: 4096,
             timeout_s: 60.0,
             retries: 2,
+            cassette: None,
         };
         e.check()?;
-        Ok((e, Some(s)))
+        Ok((e, Some(s), "scripted"))
+    } else if let Some(toml) = llm.strip_prefix("record:") {
+        let mut e = EndpointConfig::load(Path::new(toml))?;
+        e.cassette = Some(CassetteSpec { mode: CassetteMode::Record, path: run_dir.join("cassette.jsonl") });
+        Ok((e, None, "live"))
+    } else if let Some(path) = llm.strip_prefix("replay:") {
+        // Read whole here: a malformed cassette is refused before anything starts.
+        let path = std::fs::canonicalize(path).with_context(|| format!("the cassette {path}"))?;
+        let mut e = crate::cassette::Player::open(&path)?.endpoint;
+        e.model = format!("replayed:{}", e.model);
+        Ok((e, None, "replayed"))
     } else {
-        Ok((EndpointConfig::load(Path::new(llm))?, None))
+        Ok((EndpointConfig::load(Path::new(llm))?, None, "live"))
     }
 }
 
@@ -208,7 +226,7 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
     let scene = launch::resolve_scene(&o.gym)?;
     let gym = scene.parent().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let run_dir = run_folder(o.out.as_deref(), "episodes", &gym)?;
-    let (endpoint, _scripted) = endpoint(&o.llm, &o.provider, &gym, None, &run_dir.join("llm-log"))?;
+    let (endpoint, _scripted, source) = endpoint(&o.llm, &o.provider, &gym, None, &run_dir)?;
     let setup =
         GymSetup { wall: o.wall, seed: o.seed, perturb: o.perturb.clone(), robot_config: o.robot_config.clone() };
     let gym_run = GymRun::start(&o.gym, &run_dir, &setup)?;
@@ -231,6 +249,11 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
     let result = episode::run(&cfg, &gym_run.instance);
     let eval = gym_run.finish();
     let mut result = result?;
+    result.llm_source = source.into();
+    if source == "replayed" && result.stop_reason.starts_with(episode::ENDPOINT_FAILED) {
+        // Not a task failure: the replay no longer matches its recording.
+        bail!("{} (run folder {})", result.stop_reason, run_dir.display());
+    }
     let eval = eval?;
     result.success = eval["success"].as_bool().unwrap_or(false);
     result.evaluation = eval;

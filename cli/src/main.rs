@@ -226,7 +226,10 @@ struct EpisodeArgs {
     /// Gym name (see `r2g gyms`), gym folder, or scene file.
     gym: String,
     /// An endpoint TOML file (provider, base_url, model, api_key_env, ...), "scripted" (the
-    /// gym's recorded conversation) or "scripted:<conversation.json>".
+    /// gym's recorded conversation), "scripted:<conversation.json | cassette.jsonl>" (answers by
+    /// turn), "record:<endpoint.toml>" (the endpoint, each answer kept in <run>/cassette.jsonl)
+    /// or "replay:<cassette.jsonl>" (the recorded answers, no network; a request not recorded
+    /// is an error).
     #[arg(long, default_value = "scripted")]
     llm: String,
     /// Wire format for `--llm scripted`: openai or anthropic.

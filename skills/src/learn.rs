@@ -78,8 +78,9 @@ pub fn learn(run: &Path, o: &LearnOpts) -> anyhow::Result<LearnReport> {
     let listing: Vec<_> = lib.latest().cloned().collect();
     let prompt = extract::prompt(&f, &listing.iter().collect::<Vec<_>>());
     let script = root.join("agent-host/scripted").join(format!("{}-extract.json", f.record.gym));
-    let (endpoint, _guard) =
-        session::endpoint(&o.llm, &o.provider, &f.record.gym, Some(&script), &f.record.dir.join("llm-log-extract"))?;
+    let llm_dir = f.record.dir.join("extraction-llm");
+    std::fs::create_dir_all(&llm_dir)?;
+    let (endpoint, _guard, _) = session::endpoint(&o.llm, &o.provider, &f.record.gym, Some(&script), &llm_dir)?;
     let exchange = extract::ask(&endpoint, &prompt)?;
     let rc = o.robot_config.clone().unwrap_or_else(runtime::launch::default_robot_config);
     let ctx = Context {
