@@ -61,6 +61,31 @@ def scene_of(state: dict):
     return rp.segment_scene(state, tracker=None)
 
 
+MARKING_COLORS = ("red", "orange", "yellow", "green", "cyan", "blue", "purple", "pink")
+
+
+class MarkingAnchor:
+    """A coloured mark on the support plane seen as an anchor (its plane box; no height)."""
+
+    def __init__(self, m, color: str, ident: int) -> None:
+        self.id, self.obb, self.center, self.points = ident, m.obb, np.asarray(m.center), m.points
+        self.color_name, self.shape_name, self.top, self.held = color, "marking", 0.0, False
+
+    def describe(self) -> str:
+        c, e = self.center, self.obb.extents
+        return f"{self.color_name} marking at ({c[0]:.3f}, {c[1]:.3f}, {c[2]:.3f}) size {e[0]:.3f}x{e[1]:.3f} m"
+
+
+def markings(scene) -> list:
+    """The largest mark of each saturated colour on the support plane (a line, a target zone)."""
+    out = []
+    for k, color in enumerate(MARKING_COLORS):
+        found = rp.find_markings(scene, color)
+        if found and float(np.max(found[0].obb.extents[:2])) >= 0.03:
+            out.append(MarkingAnchor(found[0], color, 10_000 + k))
+    return out
+
+
 def role_names(scene) -> dict:
     """cluster id -> (role, prompt): colour and shape as perception names them; a position word
     is added when two objects would share a prompt."""
@@ -77,6 +102,8 @@ def role_names(scene) -> dict:
                     prompt = f"{word} {prompt}"
                     break
         out[o.id] = (prompt.replace(" ", "_"), prompt)
+    for m in markings(scene):
+        out[m.id] = (f"{m.color_name}_marking", f"{m.color_name} marking")
     return out
 
 
@@ -86,7 +113,7 @@ def perceive(req: dict) -> dict:
     return {"objects": [{"role": names[o.id][0], "prompt": names[o.id][1], "color": o.color_name,
                          "shape": o.shape_name, "center": [float(v) for v in o.center],
                          "sides_m": [float(v) for v in o.obb.extents], "held": bool(o.held)}
-                        for o in scene.objects]}
+                        for o in list(scene.objects) + markings(scene)]}
 
 
 def _chunk_poses(call: dict, state: dict) -> list[np.ndarray]:
@@ -112,6 +139,8 @@ def relate_round(req: dict) -> dict:
             roles_of_native[name] = names[best.id][0]
     steps, rules, objects, targets = [], [], {}, {}
     held_ids = {o.id for o in scene.objects if o.held}
+    # Objects, and marks on the table: a target beyond a line is about the line.
+    marks = markings(scene)
     for call in req.get("calls", []):
         if call.get("fn") != "post_actions" or call.get("result") != 1:
             continue
@@ -139,7 +168,7 @@ def relate_round(req: dict) -> dict:
         # (a lift: the target is about the object just grasped).
         def xy_dist(o) -> float:
             return float(np.linalg.norm(np.asarray(o.center)[:2] - T_end[:2, 3]))
-        free = [o for o in scene.objects if o.id not in held_ids]
+        free = [o for o in scene.objects if o.id not in held_ids] + marks
         obj = min(free, key=xy_dist, default=None)
         if obj is None or (xy_dist(obj) > HELD_FALLBACK_M and held_ids):
             obj = min((o for o in scene.objects if o.id in held_ids), key=xy_dist, default=obj)
@@ -167,7 +196,7 @@ def relate_round(req: dict) -> dict:
         here, grip = np.asarray(last[:6], dtype=float), g_end
     return {"steps": steps, "rules": rules, "objects": objects, "targets": targets,
             "reference": [float(v) for v in state["ee_pose"]], "roles_of_native": roles_of_native,
-            "seen": [o.describe() for o in scene.objects]}
+            "seen": [o.describe() for o in list(scene.objects) + marks]}
 
 
 def check(req: dict) -> dict:

@@ -34,7 +34,8 @@ pub fn of(scene: &Path, robot_config: &Path) -> anyhow::Result<Fingerprint> {
     let config = runtime::robot_config::RobotConfig::load(robot_config)
         .with_context(|| format!("reading the robot config {}", robot_config.display()))?;
     let mut h = Sha256::new();
-    let r4 = |v: f64| format!("{:.4}", v);
+    // Tenths of a millimetre / 1e-4, with -0 written as 0.
+    let r4 = |v: f64| format!("{}", (v * 1e4).round() as i64);
     for q in CONFIGS {
         let t = model.kin.fk(&q, model.kin.tcp);
         for v in t.translation.vector.iter().chain(t.rotation.coords.iter().map(|c| c.abs()).collect::<Vec<_>>().iter())

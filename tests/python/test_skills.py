@@ -105,6 +105,43 @@ def test_code_that_does_not_compile_is_refused_with_the_line() -> None:
         rs.check_code("x = 1\ndef f(:\n")
 
 
+def fake_scene(*objects: tuple[str, str, tuple[float, float]]):
+    """A scene with clusters of the given colour, shape and centre (SYNTHETIC stand-ins with
+    the fields rank_objects and Anchor read)."""
+    from types import SimpleNamespace
+
+    from robo_perception.geometry import OrientedBox, Plane
+
+    clusters = []
+    for i, (color, shape, (x, y)) in enumerate(objects):
+        c = np.array([x, y, 0.02])
+        box = OrientedBox(center=c, axes=np.eye(3), extents=np.array([0.04, 0.04, 0.04]))
+        clusters.append(SimpleNamespace(id=i, color_name=color, shape_name=shape, center=c, obb=box,
+                                        points=np.tile(c, (50, 1)), top=0.04, held=False,
+                                        describe=lambda c=color, s=shape: f"{c} {s}"))
+    return SimpleNamespace(objects=clusters, plane=Plane(normal=np.array([0.0, 0.0, 1.0]), offset=0.0))
+
+
+def test_an_object_perception_cannot_find_or_cannot_tell_apart_is_a_clear_error() -> None:
+    skill = {"objects": {"item": {"prompt": "red box", "class": "box"}, "left": {"prompt": "left red box", "class": "box"}},
+             "rules": [{"id": "r1", "actor": "tcp", "anchor": {"object": "item", "feature": "top_face"},
+                        "offset_m": [0, 0, 0.1], "yaw_rad": 0.0, "tilt_rad": [math.pi, 0, 0]}]}
+    runner = rs.SkillRunner(skill, log=lambda e: None)
+    state = {"ee_pose": [0.3, 0.0, 0.4, math.pi, 0.0, 0.0]}
+    with pytest.raises(rs.AnchorError, match="no object matches 'red box'.*seen: blue plate"):
+        runner.target("r1", fake_scene(("blue", "plate", (0.5, 0.1))), state)
+    two = fake_scene(("red", "box", (0.5, -0.1)), ("red", "box", (0.5, 0.1)))
+    with pytest.raises(rs.AnchorError, match="ambiguous: 2 objects"):
+        runner.target("r1", two, state)
+    # A position word orders them: no ambiguity.
+    assert runner.find("left", two).center[1] == pytest.approx(0.1)
+    one = fake_scene(("red", "box", (0.5, -0.1)), ("blue", "plate", (0.5, 0.1)))
+    pose = runner.target("r1", one, state)
+    assert pose[:3] == pytest.approx([0.5, -0.1, 0.14])
+    with pytest.raises(rs.AnchorError, match="has no perception prompt"):
+        runner.find("nobody", one)
+
+
 # ---- the whole loop on real processes ----
 
 def r2g(*args: str, timeout: float = 600) -> tuple[int, str, str]:

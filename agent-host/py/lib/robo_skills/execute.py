@@ -81,6 +81,8 @@ class SkillRunner:
         if not spec or not spec.get("prompt"):
             raise AnchorError(f"object role {role!r} has no perception prompt (roles: {', '.join(self.objects) or 'none'})")
         prompt = spec["prompt"]
+        if spec.get("class") == "marking":
+            return self._marking(role, prompt, scene)
         ranked = rp.rank_objects(scene, prompt)
         seen = "; ".join(o.describe() for o in scene.objects) or "nothing"
         if not ranked:
@@ -89,6 +91,16 @@ class SkillRunner:
             raise AnchorError(f"{prompt!r} (role {role!r}) is ambiguous: {len([r for r in ranked if r[1] >= ranked[0][1] - 1e-9])} "
                               f"objects match equally well; add a colour, shape or position word. Seen: {seen}")
         return ranked[0][0]
+
+    def _marking(self, role: str, prompt: str, scene) -> Any:
+        """A coloured mark on the support plane (rp.find_markings): the largest of its colour;
+        two of nearly the same size are ambiguous."""
+        found = rp.find_markings(scene, prompt.split()[0])
+        if not found:
+            raise AnchorError(f"no {prompt!r} on the support plane (role {role!r})")
+        if len(found) > 1 and len(found[1].points) >= 0.8 * len(found[0].points):
+            raise AnchorError(f"{prompt!r} (role {role!r}) is ambiguous: {len(found)} marks of that colour of similar size")
+        return found[0]
 
     def anchor(self, role: str, scene) -> Anchor:
         return Anchor.from_cluster(self.find(role, scene), scene.plane.normal, role)
