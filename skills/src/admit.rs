@@ -180,9 +180,19 @@ pub fn admit(root: &Path, lib: &mut Library, id: &str, o: &AdmitOpts) -> anyhow:
     }
     let gym =
         o.gym.clone().or_else(|| source_gym(&skill)).with_context(|| format!("skill {id}: no gym to run it in"))?;
-    let seen: Vec<u64> = skill.evidence.iter().map(|e| e.seed).collect();
+    // Held out: a seed no evidence of the skill used; a seed already used moves to the next free one.
+    let mut seen: Vec<u64> = skill.evidence.iter().map(|e| e.seed).collect();
+    let mut seeds = Vec::new();
+    for &s in &o.seeds {
+        let mut s = s;
+        while seen.contains(&s) {
+            s += 1;
+        }
+        seen.push(s);
+        seeds.push(s);
+    }
     let mut runs = Vec::new();
-    for &seed in o.seeds.iter().filter(|s| !seen.contains(s)) {
+    for seed in seeds {
         let setup =
             GymSetup { seed, perturb: o.perturb.clone(), robot_config: o.robot_config.clone(), ..Default::default() };
         let r = run::run(&skill, &RunOpts::new(&gym, setup))?;
