@@ -35,6 +35,7 @@ from robo_perception.transforms import pose_to_matrix  # noqa: E402
 MOVE_MIN_M, MOVE_MIN_RAD = 0.002, 0.01  # less motion than this over a chunk: the gripper or a hold
 MAX_OFFSET_M = 0.40                      # a rule may not reach further from its anchor
 HELD_FALLBACK_M = 0.08                   # a target this far from every free object is about the held one
+HELD_ABOVE_M = 0.03                      # ... and so is one this close above it (in the plane)
 
 
 def load_obs(path: str) -> dict:
@@ -77,11 +78,18 @@ class MarkingAnchor:
 
 
 def markings(scene) -> list:
-    """The largest mark of each saturated colour on the support plane (a line, a target zone)."""
+    """The largest mark of each saturated colour on the support plane (a line, a target zone),
+    unless it lies under an object (the plane-level pixels of an object's own base)."""
     out = []
     for k, color in enumerate(MARKING_COLORS):
         found = rp.find_markings(scene, color)
-        if found and float(np.max(found[0].obb.extents[:2])) >= 0.03:
+        if not found or float(np.max(found[0].obb.extents[:2])) < 0.03:
+            continue
+        c = np.asarray(found[0].center)
+        under = any(bool(o.obb.contains(c[None], margin=0.02)[0]) or
+                    float(np.linalg.norm(np.asarray(o.center)[:2] - c[:2])) < 0.5 * float(np.max(o.obb.extents[:2])) + 0.02
+                    for o in scene.objects)
+        if not under:
             out.append(MarkingAnchor(found[0], color, 10_000 + k))
     return out
 
@@ -162,16 +170,23 @@ def relate_round(req: dict) -> dict:
                 steps.append({"hold_s": round(n / hz, 3)})
             grip = g_end
             continue
-        # The object this target is about: the nearest in the plane of those not in the hand
-        # when the round began (a held object moves with the hand: "above it" would mean
-        # nothing); an object in the hand only when nothing else is within reach of the target
-        # (a lift: the target is about the object just grasped).
+        # The object this target is about: one the target is over (within its footprint), of
+        # those not in the hand when the round began; else the object in the hand when the
+        # target is right above it (a lift); else the nearest free one in the plane (a mark on
+        # the table included); else the held one.
         def xy_dist(o) -> float:
             return float(np.linalg.norm(np.asarray(o.center)[:2] - T_end[:2, 3]))
         free = [o for o in scene.objects if o.id not in held_ids] + marks
-        obj = min(free, key=xy_dist, default=None)
-        if obj is None or (xy_dist(obj) > HELD_FALLBACK_M and held_ids):
-            obj = min((o for o in scene.objects if o.id in held_ids), key=xy_dist, default=obj)
+        held = [o for o in scene.objects if o.id in held_ids]
+        over = [o for o in free if bool(o.obb.contains(np.array([[T_end[0, 3], T_end[1, 3], float(o.center[2])]]), margin=0.01)[0])]
+        if over:
+            obj = min(over, key=xy_dist)
+        elif held and min(map(xy_dist, held)) < HELD_ABOVE_M:
+            obj = min(held, key=xy_dist)
+        else:
+            obj = min(free, key=xy_dist, default=None)
+            if obj is None or (held and xy_dist(obj) > HELD_FALLBACK_M):
+                obj = min(held, key=xy_dist, default=obj)
         if obj is None:
             raise ValueError(f"{req['obs']}: no object seen to anchor a move to")
         plane_h = float(-scene.plane.offset / scene.plane.normal[2]) if abs(scene.plane.normal[2]) > 1e-6 else 0.0
@@ -187,13 +202,21 @@ def relate_round(req: dict) -> dict:
         pos = np.array([p[:3] for p in poses])
         spacing = np.linalg.norm(np.diff(np.vstack([here[None, :3], pos]), axis=0), axis=1)
         rid = f"r{len(rules) + 1}"
-        rule.update(id=rid, approach={"step_m": round(float(np.median(spacing)), 4)}, gripper=round(g_end, 3),
+        # the spacing the round used, within what a rule may ask (a turn in place has none; one
+        # long waypoint is interpolated by the runner anyway)
+        step = min(max(float(np.median(spacing)), 0.002), 0.04)
+        rule.update(id=rid, approach={"step_m": round(step, 4)}, gripper=round(g_end, 3),
                     stop={"kind": "reached"})
         rule["anchor"]["object"] = role
         rules.append(rule)
         steps.append({"move": rid})
         targets[rid] = [float(v) for v in last[:6]]
         here, grip = np.asarray(last[:6], dtype=float), g_end
+    # every perceived object the trace names (checks may be about one no rule is anchored to)
+    for o in scene.objects:
+        role, prompt = names[o.id]
+        if role in roles_of_native.values():
+            objects.setdefault(role, {"prompt": prompt, "class": o.shape_name})
     return {"steps": steps, "rules": rules, "objects": objects, "targets": targets,
             "reference": [float(v) for v in state["ee_pose"]], "roles_of_native": roles_of_native,
             "seen": [o.describe() for o in list(scene.objects) + marks]}

@@ -190,7 +190,8 @@ pub enum CheckKind {
     Lifted,
     /// `object` moved at least `min_m` since the stage began.
     Moved,
-    /// `object` rests on `support` (over its footprint, bottom at its top, within `tolerance_m`).
+    /// `object` rests on or in `support` (over its footprint, its bottom at the support's top or
+    /// between its top and bottom, within `tolerance_m`).
     On,
 }
 

@@ -5,7 +5,7 @@
 //! The label comes from what was measured, never from the model's words: a round whose program
 //! raised, was stopped by the sandbox, or had a chunk refused or failed is **negative**, as is one
 //! in which an object fell (dropped 5 cm while nothing held it) or toppled (tilted 30° while
-//! free); one that executed every chunk it sent without that is **positive**; a round that sent
+//! free and ended lying on the table or floor); one that executed every chunk it sent without that is **positive**; a round that sent
 //! nothing is **unknown**. The task checks passing before and after are reported beside (a
 //! grasp rightly undoes "released"), not judged. The native trace is read here, after the
 //! episode: the policy never saw it.
@@ -297,7 +297,11 @@ pub fn effects(scene: &Scene, trace: &Trace, t0: f64, t1: f64) -> Option<Effects
         if drop >= FELL_M {
             e.fell.push((name.clone(), drop));
         }
-        if tilt >= TOPPLED_RAD {
+        // Tilted over and lying on the table (or the floor): toppled. Tilting while hanging from
+        // a fixture (a mug on a peg) is not.
+        let floor = trace.owners.iter().position(|o| o == "floor").map(|i| i as u16);
+        let lying = [table, floor].iter().flatten().any(|&t| touching(s1, k as u16, t));
+        if tilt >= TOPPLED_RAD && lying {
             e.toppled.push((name.clone(), tilt));
         }
         if !held {

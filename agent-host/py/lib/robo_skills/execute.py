@@ -118,12 +118,20 @@ class SkillRunner:
     # ---- motion ----
 
     def _post(self, poses: list, gripper: float, what: str) -> None:
+        """Posts the poses in chunks. A refused chunk (nothing moved) fails the stage. A chunk the
+        arm could not finish because something stopped it ("not reached": the hand touched
+        down, a held object met its support) ends this motion where the arm is; the stage's
+        checks then judge whether that was the effect wanted."""
         robo = _robo()
         for k in range(0, len(poses), CHUNK):
             chunk = rp.waypoints(poses[k:k + CHUNK], gripper)
             if not robo.post_actions({"actions": chunk, "type": "ee_pose", "freq": ""}):
                 fb = robo.get_state([])["control_feedback"]
-                raise StageFailed(f"{what}: {fb.get('status')} after {fb.get('executed')} waypoints: {fb.get('reason')}")
+                reason = str(fb.get("reason") or "")
+                if fb.get("status") == "failed" and reason.startswith("not reached"):
+                    self.log({"event": "stopped_short", "what": what, "executed": fb.get("executed"), "reason": reason})
+                    break
+                raise StageFailed(f"{what}: {fb.get('status')} after {fb.get('executed')} waypoints: {reason}")
         self.gripper = gripper
 
     def move(self, rule_id: str, goal: list) -> None:
@@ -195,20 +203,24 @@ class SkillRunner:
                 return float(d[2]) >= float(c.get("min_m", 0.03)), f"{c['object']} rose {d[2]:.3f} m"
             return float(np.linalg.norm(d)) >= float(c.get("min_m", 0.01)), f"{c['object']} moved {np.linalg.norm(d):.3f} m"
         if kind == "on":
+            # Rests on the support, or in it (a bowl in a bowl, a cup in a box): over its
+            # footprint, its lowest points at the support's top or between its top and bottom.
             o, s = self.find(c["object"], scene), self.find(c["support"], scene)
             tol = float(c.get("tolerance_m", 0.02))
             local = s.obb.to_local(np.asarray(o.center)[None])[0]
             inside = bool(np.all(np.abs(local[:2]) <= s.obb.extents[:2] / 2.0 + tol))
             n, off = scene.plane.normal, scene.plane.offset
             h_obj = np.asarray(o.points) @ n + off
-            # The support's top away from the object (points of one may sit on the other's box)
-            # and the object's lowest points.
+            # The support's top away from the object (points of one may sit on the other's box).
             sp = np.asarray(s.points)
             far = np.linalg.norm((sp - np.asarray(o.center))[:, :2], axis=1) > 0.5 * float(np.max(o.obb.extents[:2])) + 0.01
             h_sup = (sp[far] if far.any() else sp) @ n + off
-            gap = float(np.percentile(h_obj, 2)) - float(np.percentile(h_sup, 90))
-            ok = inside and abs(gap) <= tol
-            return ok, f"{c['object']} {'over' if inside else 'beside'} {c['support']}, bottom {gap:+.3f} m from its top"
+            bottom, top = float(np.percentile(h_obj, 2)), float(np.percentile(h_sup, 90))
+            gap = bottom - top
+            within = gap < 0 and bottom >= float(np.min(h_sup)) - tol
+            ok = inside and (abs(gap) <= tol or within)
+            where = "in" if within else ("over" if inside else "beside")
+            return ok, f"{c['object']} {where} {c['support']}, bottom {gap:+.3f} m from its top"
         raise ValueError(f"unknown effect check {kind!r}")
 
     # ---- the procedure ----
