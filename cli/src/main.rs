@@ -69,6 +69,10 @@ enum Cmd {
         /// Also drive the Franka Hand of that arm (with --fci).
         #[arg(long, requires = "fci")]
         fci_gripper: bool,
+        /// Serve gymnasium environments (the `r2g_gym` package's live mode): the evaluator's
+        /// verdict and the episode seed on the instance's `env/` services, which `robo` never opens.
+        #[arg(long, conflicts_with = "fci")]
+        env: bool,
     },
     /// Run one program in the sandbox against a live gym (`r2g up ... --instance NAME`) and
     /// print a JSON result: stdout, stderr, exit, violation, control steps, what was enforced.
@@ -392,7 +396,7 @@ enum BenchCmd {
 fn main() {
     let cli = Cli::parse();
     let r = match cli.command {
-        Cmd::Up { gym, mode, instance, render_hz, trace_dir, robot_config, operator_group, fci, fci_gripper } => {
+        Cmd::Up { gym, mode, instance, render_hz, trace_dir, robot_config, operator_group, fci, fci_gripper, env } => {
             // Only `up` waits for the stop signals to shut its instance down in order; every other
             // command ends at once on them, and its instances' processes follow (die_with_parent).
             process::install_stop_signals();
@@ -405,7 +409,12 @@ fn main() {
                 },
                 None => launch::RobotSide::Sim,
             };
-            up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc, control_args, &side)
+            let mut sim_args: Vec<String> =
+                trace_dir.map(|d| vec!["--trace-dir".into(), d.display().to_string()]).unwrap_or_default();
+            if env {
+                sim_args.push("--env".into());
+            }
+            up(&gym, mode, &instance, render_hz, sim_args, rc, control_args, &side)
         }
         Cmd::Clear { instance } => runtime::operator::clear_fault(&instance).map(|(_cleared, reason)| {
             println!("{reason}");
@@ -525,7 +534,7 @@ fn up(
     mode: ModeArg,
     instance: &str,
     render_hz: f64,
-    trace_dir: Option<&std::path::Path>,
+    sim_args: Vec<String>,
     robot_config: std::path::PathBuf,
     control_args: Vec<String>,
     side: &launch::RobotSide,
@@ -539,7 +548,7 @@ fn up(
         },
         render_hz,
         control_args,
-        sim_args: trace_dir.map(|d| vec!["--trace-dir".into(), d.display().to_string()]).unwrap_or_default(),
+        sim_args,
         robot_config: Some(robot_config),
         ready_timeout: Duration::from_secs(60),
     };

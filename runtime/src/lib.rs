@@ -645,8 +645,12 @@ fn wall_loop(
         let rejected = ports.serve_requests(ctl, planner.as_deref_mut(), &latest, &mut stats)?;
         // The state first: an agent woken by the reply must already see where the arm is.
         robot_seq += 1;
-        let wake_agents = rejected || reply.is_some();
+        let stepped = ctl.take_stepped();
+        let wake_agents = rejected || reply.is_some() || stepped.is_some();
         ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Wall as u32), reply, &mut stats);
+        if let Some(r) = stepped {
+            ports.reply(r, &mut stats);
+        }
         if robot_seq.is_multiple_of(200) {
             // Late subscribers get the limits from history; resend so they never wait long.
             let _ = ports.info_pub.send_copy(info);
@@ -753,7 +757,7 @@ fn lockstep_loop(
             robot_seq += 1;
             ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), reply, &mut stats);
             ports.wake_agents(&mut stats);
-        } else if ctl.busy() {
+        } else if ctl.advancing() {
             // Tick k consumes state k and produces command k; the sim answers with state k+1.
             let t = rt::now_ns();
             let (cmd, reply) = ctl.tick(&latest);
@@ -763,8 +767,13 @@ fn lockstep_loop(
             ports.sim_wake.notify()?;
             wait_for_state(ports, sim, &mut latest, |s| s.command_seq >= cmd.seq)?;
             robot_seq += 1;
-            let wake = reply.is_some();
+            let stepped = ctl.take_stepped();
+            let wake = reply.is_some() || stepped.is_some();
             ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), reply, &mut stats);
+            if let Some(r) = stepped {
+                // After the state it ends on, so the stepping client reads that state.
+                ports.reply(r, &mut stats);
+            }
             if wake {
                 ports.wake_agents(&mut stats);
             }

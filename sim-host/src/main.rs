@@ -47,6 +47,10 @@ struct Args {
     /// rendered.
     #[arg(long = "camera-host", value_name = "NAME")]
     camera_hosts: Vec<String>,
+    /// Serve gymnasium environments: the evaluator's verdict on the episode so far and the seed
+    /// of the next episode, on the instance's `env/` services (never opened by `robo`).
+    #[arg(long)]
+    env: bool,
 }
 
 /// Writes an episode's trace and its evaluation; a failure to write is reported, not fatal.
@@ -156,7 +160,8 @@ fn run() -> anyhow::Result<()> {
         None
     };
 
-    let mut trace = args.trace_dir.as_ref().map(|_| sim.new_trace());
+    let env = if args.env { Some(sim_host::env_service::EnvService::open(&node, &services)?) } else { None };
+    let mut trace = (args.trace_dir.is_some() || env.is_some()).then(|| sim.new_trace());
     let mut episode = 1u64;
     if let Some(t) = trace.as_mut() {
         sim.record(t);
@@ -195,13 +200,14 @@ fn run() -> anyhow::Result<()> {
         let _ = wake.timed_wait(|_| {}, Duration::from_millis(20));
         let mut stepped = false;
         while let Some(r) = reset_sub.receive()? {
-            if let (Some(dir), Some(t)) = (&args.trace_dir, trace.as_mut()) {
+            if let (Some(dir), Some(t)) = (&args.trace_dir, trace.as_ref()) {
                 finish_episode(&sim, dir, episode, t);
                 episode += 1;
-                *t = sim.new_trace();
             }
             sim.reset();
             if let Some(t) = trace.as_mut() {
+                // Made after the reset, so it carries this episode's seed.
+                *t = sim.new_trace();
                 sim.record(t);
             }
             reset_id = r.id;
@@ -223,6 +229,10 @@ fn run() -> anyhow::Result<()> {
             seq += 1;
             publish(&sim, seq, cmd.seq, reset_id)?;
             stepped = true;
+        }
+        if let (Some(e), Some(t)) = (&env, trace.as_ref()) {
+            // After the steps: a verdict judges the trace up to the newest state.
+            e.serve(&mut sim, t, reset_id)?;
         }
         snapshot_dirty |= stepped;
         if !stepped && last_publish.elapsed() > Duration::from_millis(20) {
