@@ -31,11 +31,17 @@ pub struct Episode {
 impl Episode {
     /// Loads a scene and starts an episode from its initial state, augmented by `seed`.
     pub fn new(scene: &Path, seed: u64) -> anyhow::Result<Self> {
+        Self::with_limits(scene, seed, LimiterConfig::default())
+    }
+
+    /// [`Self::new`] with the limiter settings of a robot configuration
+    /// (`runtime::RobotConfig::limiter`: its step caps and chunk length), as `r2g-control` runs.
+    pub fn with_limits(scene: &Path, seed: u64, limits: LimiterConfig) -> anyhow::Result<Self> {
         let mut sim = Sim::load(scene).with_context(|| format!("loading scene {}", scene.display()))?;
         sim.seed = seed;
         sim.reset();
         let (robot, safety) = runtime::scene_robot(scene)?;
-        let ctl = Controller::new(robot, LimiterConfig::default(), sim.scene.timestep_s).with_safety(safety);
+        let ctl = Controller::new(robot, limits, sim.scene.timestep_s).with_safety(safety);
         let mut trace = sim.new_trace();
         sim.record(&mut trace);
         Ok(Self { sim, ctl, trace, seq: 1, last_cmd: 0, next_request: 1, reset_id: 0, ticks: 0 })

@@ -477,6 +477,52 @@ impl Client {
         Ok(ok)
     }
 
+    /// One step of a fixed period (a gymnasium environment's, see [`RequestKind::Step`]):
+    /// `actions` (none: time only passes) as the step's chunk, then `ticks` ticks. Blocks until
+    /// the period is over; returns every reply to the step in order, the last `stepped`.
+    pub fn step(
+        &mut self,
+        control: ControlType,
+        freq_hz: f64,
+        actions: &[[f64; WAYPOINT_LEN]],
+        ticks: u32,
+    ) -> Result<Vec<Reply>, RoboError> {
+        let id = self.send(|r| {
+            r.kind = RequestKind::Step as u32;
+            r.control_type = control as u32;
+            r.len = actions.len().min(MAX_CHUNK) as u32;
+            r.step_ticks = ticks;
+            r.freq_hz = freq_hz;
+            r.actions[..actions.len().min(MAX_CHUNK)].copy_from_slice(&actions[..actions.len().min(MAX_CHUNK)]);
+        })?;
+        let period_s = f64::from(ticks) * self.info.map_or(1e-3, |i| i.tick_period_ns as f64 * 1e-9);
+        let timeout = Duration::from_secs_f64(10.0 + 2.0 * period_s);
+        let t0 = Instant::now();
+        let mut replies = Vec::new();
+        loop {
+            while let Some(r) = self.reply_sub.receive().map_err(ipc("reply"))? {
+                if r.id == id && r.client == self.client_id {
+                    replies.push(*r);
+                    if r.status == Status::Stepped as u32 {
+                        self.settle()?;
+                        return Ok(replies);
+                    }
+                }
+            }
+            while let Some(s) = self.robot_sub.receive().map_err(ipc("robot state"))? {
+                self.last_state = Some(*s);
+                self.last_state_at = Instant::now();
+            }
+            if self.last_state_at.elapsed() > Duration::from_secs(2) {
+                return Err(RoboError::Stale(self.instance.clone(), self.last_state_at.elapsed().as_secs_f64()));
+            }
+            if t0.elapsed() > timeout {
+                return Err(RoboError::Ipc(format!("step {id} did not end within {:.0} s", timeout.as_secs_f64())));
+            }
+            let _ = self.agent_wake.timed_wait(|_| {}, Duration::from_millis(20));
+        }
+    }
+
     pub fn node_name(&self) -> String {
         self.node.name().as_str().to_string()
     }
