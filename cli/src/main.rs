@@ -116,6 +116,8 @@ enum Cmd {
         episodes: u32,
         #[command(flatten)]
         opts: EpisodeArgs,
+        #[command(flatten)]
+        fleet: FleetArgs,
     },
     /// Write (or rewrite) the static HTML viewer of a run folder.
     View { run_dir: std::path::PathBuf },
@@ -133,11 +135,18 @@ enum Cmd {
     /// tick), then judge the native trace. Ends with the evaluator's JSON line; exit status 0
     /// on success, 1 when the task failed.
     Replay {
-        /// Gym name, gym folder, or scene file.
-        gym: String,
+        /// Gym name, gym folder, or scene file; with --seeds, --workers or --ray several, or
+        /// `all` for the whole pack.
+        #[arg(required = true)]
+        gyms: Vec<String>,
         /// Augmentation seed (0: the scene as written).
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// Replay each gym with seeds 0..N, as one job per replay (a summary JSON at the end).
+        #[arg(long)]
+        seeds: Option<u64>,
+        #[command(flatten)]
+        fleet: FleetArgs,
         /// Post no actions at all: the evaluator must then report failure.
         #[arg(long)]
         do_nothing: bool,
@@ -213,6 +222,19 @@ impl From<EpisodeArgs> for session::EpisodeOpts {
             memory: a.memory,
         }
     }
+}
+
+/// Where the episodes of a batch run (default: one after the other in this process).
+#[derive(clap::Args, Debug, Clone)]
+struct FleetArgs {
+    /// Run the episodes as Ray tasks: `auto` (the running cluster, else a local one for this
+    /// batch) or a cluster's address (fleet/MULTINODE.md). Needs `ray` (requirements-ray.txt).
+    #[arg(long, value_name = "auto|ADDRESS")]
+    ray: Option<String>,
+    /// Run this many episodes at once on this machine, each in its own process group and
+    /// shared-memory prefix (no Ray).
+    #[arg(long, conflicts_with = "ray")]
+    workers: Option<usize>,
 }
 
 /// Options shared by `r2g kin fk` and `r2g kin ik`.
@@ -424,10 +446,16 @@ fn main() {
             println!("{}", serde_json::to_string(&r)?);
             Ok(if r.success { 0 } else { 1 })
         }),
-        Cmd::Batch { episodes, opts } => session::batch(&opts.into(), episodes, |i, r| match r {
-            Ok(r) => eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses),
-            Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),
-        })
+        Cmd::Batch { episodes, opts, fleet } => match fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers) {
+            None => session::batch(&opts.into(), episodes, |i, r| match r {
+                Ok(r) => eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses),
+                Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),
+            }),
+            Some(b) => session::batch_on(&opts.into(), episodes, &b, |i, r| match r.get("error") {
+                Some(e) => eprintln!("r2g batch: episode {i}: {}", e.as_str().unwrap_or("failed")),
+                None => eprintln!("r2g batch: episode {i}: success {} in {} responses", r["success"], r["responses"]),
+            }),
+        }
         .map(|v| {
             println!("{v}");
             // Failed tasks are results; a batch none of whose episodes could run at all (the
@@ -448,7 +476,23 @@ fn main() {
         }
         Cmd::Gyms => gyms(),
         Cmd::Service { which } => service::run(which),
-        Cmd::Replay { gym, seed, do_nothing, out } => replay(&gym, seed, do_nothing, &out),
+        Cmd::Replay { gyms, seed, seeds, fleet, do_nothing, out } => {
+            let backend = fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers);
+            match (gyms.as_slice(), backend, seeds) {
+                ([gym], None, None) if gym != "all" => replay(gym, seed, do_nothing, &out),
+                (_, backend, seeds) => {
+                    let gyms = if gyms.iter().any(|g| g == "all") { launch::gym_names() } else { gyms };
+                    let backend = backend.unwrap_or(fleet::Backend::Local(1));
+                    std::path::absolute(&out)
+                        .map_err(anyhow::Error::from)
+                        .and_then(|out| fleet::replays(&gyms, seeds.unwrap_or(1), &backend, &out))
+                        .map(|v| {
+                            println!("{v}");
+                            i32::from(v["success_rate"].as_f64() != Some(1.0))
+                        })
+                }
+            }
+        }
         Cmd::AuthorDemo { gym } => author_demo(&gym),
         Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => bench::sim::run(&gyms, frames).map(|_| 0),
         Cmd::Kin { which: KinCmd::Fk { args } } => kin::run(false, &args.robot, &args.tcp, args.frame.as_deref()),
