@@ -34,8 +34,12 @@ RESOURCE = "r2g_gym"
 """The custom Ray resource every job takes one of: a node offers as many as it runs gyms at once."""
 SHM_PER_GYM_MB = float(os.environ.get("R2G_SHM_PER_GYM_MB", "512"))
 """/dev/shm one gym instance may use (its camera and request services, with headroom)."""
-JOBS_ROOT = Path(os.environ.get("R2G_FLEET_DIR", "/tmp/r2g-fleet"))
-"""Where each running job keeps its iceoryx2 configuration and the facts its sweep needs."""
+
+
+def jobs_root() -> Path:
+    """Where each running job keeps its iceoryx2 configuration and the facts its sweep needs:
+    ``$R2G_FLEET_DIR`` of the node it runs on (read there, not in the driver), else /tmp/r2g-fleet."""
+    return Path(os.environ.get("R2G_FLEET_DIR", "/tmp/r2g-fleet"))
 PR_SET_PDEATHSIG = 1
 
 
@@ -87,6 +91,8 @@ def _remove_job(d: Path) -> None:
     if prefix:
         for f in Path("/dev/shm").glob(f"{prefix}*"):
             f.unlink(missing_ok=True)
+    if facts.get("ipc_root"):
+        shutil.rmtree(facts["ipc_root"], ignore_errors=True)
     shutil.rmtree(d, ignore_errors=True)
 
 
@@ -94,10 +100,11 @@ def sweep() -> list[str]:
     """Cleans up after dead jobs of this node: a job whose worker is gone has its process group
     killed (if anything of it survived) and its shared memory and folder removed. Returns the
     jobs swept."""
-    swept = []
-    if not JOBS_ROOT.is_dir():
+    swept: list[str] = []
+    root = jobs_root()
+    if not root.is_dir():
         return swept
-    for d in JOBS_ROOT.iterdir():
+    for d in root.iterdir():
         try:
             facts = json.loads((d / "job.json").read_text())
         except (OSError, ValueError):
@@ -125,12 +132,15 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
     its result: the exit status, its last JSON line, the tail of its stderr, where it ran."""
     sweep()
     tag = f"r2gj{uuid.uuid4().hex[:10]}"
-    d = JOBS_ROOT / tag
-    (d / "iceoryx2").mkdir(parents=True)
+    d = jobs_root() / tag
+    d.mkdir(parents=True)
+    # A short root path: iceoryx2's event sockets live under it, and socket paths are short.
+    ipc_root = Path("/tmp") / tag
+    ipc_root.mkdir()
     prefix = f"{tag}_"
     config = d / "iceoryx2.toml"
-    config.write_text(f'[global]\nroot-path = "{d}/iceoryx2/"\nprefix = "{prefix}"\n')
-    facts: dict[str, Any] = {"worker": os.getpid(), "prefix": prefix, "pgid": 0}
+    config.write_text(f'[global]\nroot-path = "{ipc_root}/"\nprefix = "{prefix}"\n')
+    facts: dict[str, Any] = {"worker": os.getpid(), "prefix": prefix, "pgid": 0, "ipc_root": str(ipc_root)}
     (d / "job.json").write_text(json.dumps(facts))
     env = dict(os.environ, R2G_IPC_CONFIG=str(config))
     for var in ("RAY_ADDRESS",):
@@ -186,8 +196,11 @@ def _local(jobs: list[dict[str, Any]], r2g: str, workers: int) -> Iterator[dict[
 
 
 def _ray(jobs: list[dict[str, Any]], r2g: str, address: str, retries: int) -> Iterator[dict[str, Any]]:
+    if "RAY_AUTH_MODE" not in os.environ and (Path.home() / ".ray" / "auth_token").is_file():
+        # Clusters started by `ray start` (2.5x and later) want a token by default; a driver on a
+        # node that has one (copied there, see fleet/MULTINODE.md) presents it. Read at import.
+        os.environ["RAY_AUTH_MODE"] = "token"
     import ray  # only here: a batch without --ray needs no Ray
-
     if address == "auto":
         try:
             ray.init(address="auto", log_to_driver=False)
