@@ -232,8 +232,8 @@ struct FleetArgs {
     #[arg(long, value_name = "auto|ADDRESS")]
     ray: Option<String>,
     /// Run this many episodes at once on this machine, each in its own process group and
-    /// shared-memory prefix (no Ray).
-    #[arg(long, conflicts_with = "ray")]
+    /// shared-memory prefix (no Ray); with --ray, at most this many at once on the cluster.
+    #[arg(long)]
     workers: Option<usize>,
 }
 
@@ -401,6 +401,20 @@ enum BenchCmd {
         #[arg(long, default_value_t = 5.0)]
         sample_s: f64,
     },
+    /// Episodes per minute of lockstep demonstration replays and scripted agent episodes at 1, 2
+    /// and N workers, on local workers and as tasks of a local Ray cluster it starts and stops;
+    /// Ray's overhead per task and the parallel efficiency.
+    Batch {
+        /// The largest worker count (above the cores: oversubscription, labelled so).
+        #[arg(long, default_value_t = 4)]
+        workers: usize,
+        /// Replays per configuration.
+        #[arg(long, default_value_t = 8)]
+        replays: usize,
+        /// Scripted agent episodes per configuration.
+        #[arg(long, default_value_t = 4)]
+        agents: usize,
+    },
     /// The receiving process of `r2g bench ipc` (started by it).
     #[command(hide = true)]
     IpcPeer {
@@ -518,6 +532,9 @@ fn main() {
         }
         Cmd::Bench { which: BenchCmd::Soak { minutes, gym, stall_s, sample_s } } => {
             bench::soak::run(&bench::soak::Options { minutes, gym, stall_s, sample_s }).map(|_| 0)
+        }
+        Cmd::Bench { which: BenchCmd::Batch { workers, replays, agents } } => {
+            bench::batch::run(workers, replays, agents).map(|_| 0)
         }
         Cmd::Bench { which: BenchCmd::Ipc { only } } => bench::ipc::run(only.as_deref()).map(|_| 0),
         Cmd::Bench { which: BenchCmd::IpcPeer { transport, payload, addr, cpu } } => (|| {

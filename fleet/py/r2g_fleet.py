@@ -195,7 +195,9 @@ def _local(jobs: list[dict[str, Any]], r2g: str, workers: int) -> Iterator[dict[
                 yield f.result()
 
 
-def _ray(jobs: list[dict[str, Any]], r2g: str, address: str, retries: int) -> Iterator[dict[str, Any]]:
+def _ray(
+    jobs: list[dict[str, Any]], r2g: str, address: str, retries: int, max_concurrent: int | None
+) -> Iterator[dict[str, Any]]:
     if "RAY_AUTH_MODE" not in os.environ and (Path.home() / ".ray" / "auth_token").is_file():
         # Clusters started by `ray start` (2.5x and later) want a token by default; a driver on a
         # node that has one (copied there, see fleet/MULTINODE.md) presents it. Read at import.
@@ -209,12 +211,17 @@ def _ray(jobs: list[dict[str, Any]], r2g: str, address: str, retries: int) -> It
             ray.init(resources={RESOURCE: node_capacity()}, include_dashboard=False, log_to_driver=False)
     else:
         ray.init(address=address, log_to_driver=False)
-    if not ray.cluster_resources().get(RESOURCE):
+    total = ray.cluster_resources().get(RESOURCE, 0)
+    if not total:
         raise SystemExit(
             f"the Ray cluster offers no '{RESOURCE}' resource: start each node with "
             f"--resources='{{\"{RESOURCE}\": N}}' (python fleet/py/r2g_fleet.py resources prints N)"
         )
-    task = ray.remote(run_job).options(resources={RESOURCE: 1}, num_cpus=0, max_retries=retries, retry_exceptions=True)
+    # At most `max_concurrent` at once: each task takes that share of the cluster's gym slots.
+    share = 1.0 if not max_concurrent else max(1.0, total / max_concurrent)
+    task = ray.remote(run_job).options(
+        resources={RESOURCE: share}, num_cpus=0, max_retries=retries, retry_exceptions=True
+    )
     started = time.monotonic()
     refs = {task.remote(j, r2g): j for j in jobs}
     try:
@@ -241,6 +248,7 @@ def main(argv: list[str]) -> int:
     where.add_argument("--local", type=int, metavar="N", help="N worker threads on this machine")
     where.add_argument("--ray", metavar="ADDRESS", help="'auto' or a Ray cluster's address")
     r.add_argument("--retries", type=int, default=2, help="tries after a failed one (Ray only)")
+    r.add_argument("--max-concurrent", type=int, help="at most this many jobs at once (Ray only)")
     sub.add_parser("resources", help="this node's resources for `ray start --resources=...`")
     sub.add_parser("sweep", help="clean up after this node's dead jobs")
     a = ap.parse_args(argv)
@@ -255,7 +263,7 @@ def main(argv: list[str]) -> int:
     if a.local is not None:
         results = lambda: _local(jobs, a.r2g, a.local)  # noqa: E731
     else:
-        results = lambda: _ray(jobs, a.r2g, a.ray, a.retries)  # noqa: E731
+        results = lambda: _ray(jobs, a.r2g, a.ray, a.retries, a.max_concurrent)  # noqa: E731
     for res in results():
         sys.stdout.write(json.dumps(res) + "\n")
         sys.stdout.flush()

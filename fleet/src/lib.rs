@@ -20,15 +20,18 @@ pub struct Job {
 pub enum Backend {
     /// This many at once on this machine (no Ray).
     Local(usize),
-    /// As Ray tasks: `auto` (the running cluster, else a local one for this batch) or an address.
-    Ray(String),
+    /// As Ray tasks: `address` is `auto` (the running cluster, else a local one for this batch)
+    /// or a cluster's address; at most `max_concurrent` at once (None: as many as the cluster's
+    /// `r2g_gym` resources allow).
+    Ray { address: String, max_concurrent: Option<usize> },
 }
 
 impl Backend {
-    /// `--ray ADDRESS` wins over `--workers N`; neither: `None` (the caller's own sequential path).
+    /// `--ray ADDRESS` (with `--workers N`: at most N at once) or `--workers N` alone; neither:
+    /// `None` (the caller's own sequential path).
     pub fn from_args(ray: Option<&str>, workers: Option<usize>) -> Option<Self> {
         match (ray, workers) {
-            (Some(a), _) => Some(Self::Ray(a.to_string())),
+            (Some(a), w) => Some(Self::Ray { address: a.to_string(), max_concurrent: w }),
             (None, Some(n)) => Some(Self::Local(n.max(1))),
             (None, None) => None,
         }
@@ -61,7 +64,13 @@ pub fn run(jobs: &[Job], backend: &Backend, work_dir: &Path, mut on_result: impl
     cmd.arg(&driver).args(["run", "--jobs"]).arg(&list).arg("--r2g").arg(&r2g);
     match backend {
         Backend::Local(n) => cmd.args(["--local", &n.to_string()]),
-        Backend::Ray(a) => cmd.args(["--ray", a]),
+        Backend::Ray { address, max_concurrent } => {
+            cmd.args(["--ray", address]);
+            if let Some(n) = max_concurrent {
+                cmd.args(["--max-concurrent", &n.to_string()]);
+            }
+            &mut cmd
+        }
     };
     // SAFETY: prctl in the child before exec; async-signal-safe.
     unsafe {
