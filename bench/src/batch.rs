@@ -109,7 +109,10 @@ pub fn run(max_workers: usize, replays: usize, agents: usize) -> anyhow::Result<
     let head = RayHead::start(*counts.iter().max().unwrap_or(&2))?;
     let mut rows = Vec::new();
     println!("batch throughput on {cores} cores (workers > {cores}: oversubscribed); agent episodes are scripted (synthetic)");
-    println!("{:<8} {:<6} {:>8} {:>10} {:>12} {:>11} {:>8}", "kind", "where", "workers", "wall s", "episodes/min", "efficiency", "failed");
+    println!(
+        "{:<8} {:<6} {:>8} {:>10} {:>12} {:>11} {:>8}",
+        "kind", "where", "workers", "wall s", "episodes/min", "efficiency", "failed"
+    );
     for (kind, jobs) in [("replay", &replay_jobs), ("agent", &agent_jobs)] {
         let mut base: Option<f64> = None;
         for &w in &counts {
@@ -152,8 +155,11 @@ pub fn run(max_workers: usize, replays: usize, agents: usize) -> anyhow::Result<
         "ray_overhead_per_task_ms": {"replay": overhead("replay"), "agent": overhead("agent")},
         "rows": rows,
     });
-    println!("Ray overhead per task (1 worker, Ray minus local, per episode): replay {:.0} ms, agent {:.0} ms",
-        overhead("replay").unwrap_or(f64::NAN), overhead("agent").unwrap_or(f64::NAN));
+    println!(
+        "Ray overhead per task (1 worker, Ray minus local, per episode): replay {:.0} ms, agent {:.0} ms",
+        overhead("replay").unwrap_or(f64::NAN),
+        overhead("agent").unwrap_or(f64::NAN)
+    );
     println!("* more workers than cores: oversubscription");
     println!("{figures}");
     Ok(figures)
