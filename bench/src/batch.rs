@@ -95,17 +95,20 @@ pub fn run(max_workers: usize, replays: usize, agents: usize) -> anyhow::Result<
             ],
         })
         .collect();
-    let agent_jobs: Vec<Job> = (0..agents)
-        .map(|i| Job {
-            id: i,
-            args: vec![
-                "episode".into(),
-                "pick_block_plate".into(),
-                "--out".into(),
-                dir.join(format!("agent-{i}")).display().to_string(),
-            ],
-        })
-        .collect();
+    // An episode's run folder is its own: every configuration writes into new ones.
+    let agent_jobs = |tag: &str| -> Vec<Job> {
+        (0..agents)
+            .map(|i| Job {
+                id: i,
+                args: vec![
+                    "episode".into(),
+                    "pick_block_plate".into(),
+                    "--out".into(),
+                    dir.join(format!("agent-{tag}-{i}")).display().to_string(),
+                ],
+            })
+            .collect()
+    };
     let head = RayHead::start(*counts.iter().max().unwrap_or(&2))?;
     let mut rows = Vec::new();
     println!("batch throughput on {cores} cores (workers > {cores}: oversubscribed); agent episodes are scripted (synthetic)");
@@ -113,14 +116,15 @@ pub fn run(max_workers: usize, replays: usize, agents: usize) -> anyhow::Result<
         "{:<8} {:<6} {:>8} {:>10} {:>12} {:>11} {:>8}",
         "kind", "where", "workers", "wall s", "episodes/min", "efficiency", "failed"
     );
-    for (kind, jobs) in [("replay", &replay_jobs), ("agent", &agent_jobs)] {
+    for kind in ["replay", "agent"] {
         let mut base: Option<f64> = None;
         for &w in &counts {
             for (place, backend) in [
                 ("local", Backend::Local(w)),
                 ("ray", Backend::Ray { address: head.address.clone(), max_concurrent: Some(w) }),
             ] {
-                let (wall, inside, failed) = timed(jobs, &backend, &dir)?;
+                let jobs = if kind == "replay" { replay_jobs.clone() } else { agent_jobs(&format!("{place}{w}")) };
+                let (wall, inside, failed) = timed(&jobs, &backend, &dir)?;
                 let per_min = jobs.len() as f64 / wall * 60.0;
                 if place == "local" && w == 1 {
                     base = Some(per_min);

@@ -350,6 +350,7 @@ impl Ports {
             self.reply_pub.update_connections(),
             self.robot_pub.update_connections(),
             self.agent_wake.update_connections(),
+            self.info_pub.update_connections(),
         ];
         let robot = [
             self.state_sub.update_connections(),
@@ -785,6 +786,10 @@ fn lockstep_loop(
                 ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), None, &mut stats);
                 if robot_seq.is_multiple_of(10) {
                     let _ = ports.info_pub.send_copy(info);
+                } else {
+                    // A new agent gets the limits from history as soon as they are noted.
+                    use iceoryx2::port::update_connections::UpdateConnections;
+                    let _ = ports.info_pub.update_connections();
                 }
                 last_beat = std::time::Instant::now();
             }

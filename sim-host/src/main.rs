@@ -241,9 +241,14 @@ fn run() -> anyhow::Result<()> {
             publish(&sim, seq, last_cmd_seq, reset_id)?;
         }
         if last_info.elapsed() > Duration::from_millis(200) {
-            // History reaches late subscribers only with a new send.
+            // History reaches late subscribers with a new send...
             info_pub.send_copy(info)?;
             last_info = std::time::Instant::now();
+        } else if !stepped {
+            // ... or when the publisher takes note of them: an agent connecting to an idle
+            // instance has the camera list within one idle round, not up to 200 ms later.
+            use iceoryx2::port::update_connections::UpdateConnections;
+            let _ = info_pub.update_connections();
         }
         if stepped || last_publish.elapsed() > Duration::from_millis(20) {
             last_publish = std::time::Instant::now();
