@@ -133,6 +133,23 @@ fn outcome<'py>(
     Ok(d)
 }
 
+type StepResult<'py> = (Bound<'py, PyDict>, Bound<'py, PyDict>);
+
+/// The state a step ended on and its outcome; an error when its period never ended.
+fn step_result<'py>(
+    py: Python<'py>,
+    control: ControlType,
+    target: &[f64; WAYPOINT_LEN],
+    replies: &[Reply],
+    end: &RobotState,
+) -> Result<StepResult<'py>, String> {
+    if replies.last().is_none_or(|r| r.status != Status::Stepped as u32) {
+        return Err("the step's period did not end".into());
+    }
+    let state = state_dict(py, end).map_err(|e| e.to_string())?;
+    Ok((state, outcome(py, control, target, replies, end).map_err(|e| e.to_string())?))
+}
+
 fn waypoint(action: &[f64]) -> PyResult<[f64; WAYPOINT_LEN]> {
     let n = match action.len() {
         8 => 8,
@@ -202,11 +219,8 @@ impl Local {
         let target = waypoint(&action)?;
         let freq_hz = 1.0 / (f64::from(ticks) * self.episode.sim.scene.timestep_s);
         let replies = self.episode.step(self.control, &[target], freq_hz, ticks);
-        if replies.last().is_none_or(|r| r.status != Status::Stepped as u32) {
-            return Err(runtime_err("the step did not end (the controller stopped advancing)"));
-        }
         let end = self.episode.robot_state();
-        Ok((state_dict(py, &end)?, outcome(py, self.control, &target, &replies, &end)?))
+        step_result(py, self.control, &target, &replies, &end).map_err(runtime_err)
     }
 
     /// The evaluator's verdict on the episode so far: (success, the verdict as JSON).

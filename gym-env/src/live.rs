@@ -10,13 +10,13 @@ use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
-use ipc_schema::{ControlType, EnvAnswer, EnvQuery, EnvQueryKind, Services, Status};
+use ipc_schema::{ControlType, EnvAnswer, EnvQuery, EnvQueryKind, Services};
 use pyo3::exceptions::{PyConnectionError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyDict};
 use robo::{Client, RoboError};
 
-use crate::{control_type, limits, outcome, spec, state_dict, waypoint};
+use crate::{control_type, limits, spec, state_dict, step_result, waypoint};
 
 type S = ipc::Service;
 
@@ -141,10 +141,7 @@ impl Live {
         let (client, control) = (&mut self.client, self.control);
         let replies = client.step(control, freq_hz, &[target], ticks).map_err(robo_err)?;
         let end = client.refresh_state(Duration::from_secs(2)).map_err(robo_err)?;
-        if replies.last().is_none_or(|r| r.status != Status::Stepped as u32) {
-            return Err(gone("the step's period did not end"));
-        }
-        Ok((state_dict(py, &end)?, outcome(py, self.control, &target, &replies, &end)?))
+        step_result(py, control, &target, &replies, &end).map_err(gone)
     }
 
     fn evaluate(&mut self) -> PyResult<(bool, String)> {

@@ -369,15 +369,31 @@ impl Client {
     /// Waits for the final reply to request `id` (an `accepted` one is noted on the way);
     /// watches the runtime's liveness meanwhile.
     fn wait_reply(&mut self, id: u64, timeout: Duration) -> Result<Reply, RoboError> {
+        let replies = self.replies_until(id, timeout, |r| r.status != Status::Accepted as u32)?;
+        let Some((last, accepted)) = replies.split_last() else { unreachable!("ends with the final reply") };
+        for r in accepted {
+            self.finish(*r);
+        }
+        Ok(*last)
+    }
+
+    /// Every reply to request `id` until one that `done` accepts (the last one returned);
+    /// watches the runtime's liveness meanwhile.
+    fn replies_until(
+        &mut self,
+        id: u64,
+        timeout: Duration,
+        done: impl Fn(&Reply) -> bool,
+    ) -> Result<Vec<Reply>, RoboError> {
         let t0 = Instant::now();
+        let mut replies = Vec::new();
         loop {
             while let Some(r) = self.reply_sub.receive().map_err(ipc("reply"))? {
                 if r.id == id && r.client == self.client_id {
-                    if r.status == Status::Accepted as u32 {
-                        self.finish(*r);
-                        continue;
+                    replies.push(*r);
+                    if done(&r) {
+                        return Ok(replies);
                     }
-                    return Ok(*r);
                 }
             }
             while let Some(s) = self.robot_sub.receive().map_err(ipc("robot state"))? {
@@ -497,30 +513,9 @@ impl Client {
         })?;
         let period_s = f64::from(ticks) * self.info.map_or(1e-3, |i| i.tick_period_ns as f64 * 1e-9);
         let timeout = Duration::from_secs_f64(10.0 + 2.0 * period_s);
-        let t0 = Instant::now();
-        let mut replies = Vec::new();
-        loop {
-            while let Some(r) = self.reply_sub.receive().map_err(ipc("reply"))? {
-                if r.id == id && r.client == self.client_id {
-                    replies.push(*r);
-                    if r.status == Status::Stepped as u32 {
-                        self.settle()?;
-                        return Ok(replies);
-                    }
-                }
-            }
-            while let Some(s) = self.robot_sub.receive().map_err(ipc("robot state"))? {
-                self.last_state = Some(*s);
-                self.last_state_at = Instant::now();
-            }
-            if self.last_state_at.elapsed() > Duration::from_secs(2) {
-                return Err(RoboError::Stale(self.instance.clone(), self.last_state_at.elapsed().as_secs_f64()));
-            }
-            if t0.elapsed() > timeout {
-                return Err(RoboError::Ipc(format!("step {id} did not end within {:.0} s", timeout.as_secs_f64())));
-            }
-            let _ = self.agent_wake.timed_wait(|_| {}, Duration::from_millis(20));
-        }
+        let replies = self.replies_until(id, timeout, |r| r.status == Status::Stepped as u32)?;
+        self.settle()?;
+        Ok(replies)
     }
 
     pub fn node_name(&self) -> String {
