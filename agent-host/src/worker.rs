@@ -289,8 +289,8 @@ fn make_cgroup(name: &str, pids: u64) -> Option<PathBuf> {
 
 impl Worker {
     pub fn new(cfg: WorkerConfig) -> Self {
-        // R2G_AGENT_PRESTART=0 turns it off (`bench agent` compares both in one run).
-        let prestart = std::env::var("R2G_AGENT_PRESTART").map_or(true, |v| v != "0");
+        // R2G_HOST_BASELINE=1: the host as it was, for `bench agent`'s comparison in one run.
+        let prestart = !ipc_schema::process::host_baseline();
         Self { cfg, host: None, next: None, prestart, enforced: None, starts: 0 }
     }
 

@@ -786,7 +786,7 @@ fn lockstep_loop(
                 ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), None, &mut stats);
                 if robot_seq.is_multiple_of(10) {
                     let _ = ports.info_pub.send_copy(info);
-                } else {
+                } else if !process::host_baseline() {
                     // A new agent gets the limits from history as soon as they are noted.
                     use iceoryx2::port::update_connections::UpdateConnections;
                     let _ = ports.info_pub.update_connections();

@@ -244,7 +244,7 @@ fn run() -> anyhow::Result<()> {
             // History reaches late subscribers with a new send...
             info_pub.send_copy(info)?;
             last_info = std::time::Instant::now();
-        } else if !stepped {
+        } else if !stepped && !process::host_baseline() {
             // ... or when the publisher takes note of them: an agent connecting to an idle
             // instance has the camera list within one idle round, not up to 200 ms later.
             use iceoryx2::port::update_connections::UpdateConnections;

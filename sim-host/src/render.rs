@@ -132,6 +132,7 @@ pub fn run(
     let period = Duration::from_secs_f64(1.0 / cfg.rate_hz.max(0.1));
     let mut last_seq = u64::MAX;
     let mut last_reset = u64::MAX;
+    let first_frame_at_once = !ipc_schema::process::host_baseline();
     let mut next = Instant::now();
     let mut frame_seq = 0u64;
     let mut idle = 0u64;
@@ -161,7 +162,7 @@ pub fn run(
         let now = Instant::now();
         // A new episode's first frame is drawn at once: whoever reset waits for it (an agent's
         // first observation), and its scene differs from the last frame's.
-        if now < next && snap.reset_id == last_reset {
+        if now < next && (snap.reset_id == last_reset || !first_frame_at_once) {
             std::thread::sleep(next - now);
         }
         next = Instant::now() + period;
