@@ -308,7 +308,8 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         bail!("reset before the episode failed: {}", reset["feedback"]);
     }
     let first = worker.host_cmd(json!({"cmd": "observe", "images": true}))?;
-    // The first program's processes start while the first prompt is built and answered.
+    // The first program's processes start while the first prompt is built and answered (not
+    // earlier: on two cores they would slow the reset and the first images).
     worker.prestart_next();
     let profile = first["state"]["backend"].as_str().unwrap_or("simulation").to_string();
     let system = system_prompt(&cfg.root, &profile, &cfg.skills);

@@ -378,9 +378,9 @@ impl Worker {
         Ok(Proxy { child, input, output })
     }
 
-    /// With `prestart`, starts the next program's processes now, so that they come up while the
-    /// host observes and the model thinks; one that cannot start now is started (and its error
-    /// reported) by the next [`Self::run`].
+    /// With `prestart`, starts the next program's processes now, so that they are up when it
+    /// comes; one that cannot start now is started (and its error reported) by the next
+    /// [`Self::run`].
     pub fn prestart_next(&mut self) {
         if self.prestart && self.next.is_none() {
             self.next = self.launch().ok();
@@ -396,10 +396,10 @@ impl Worker {
         Ok(())
     }
 
-    /// Starts the next program's proxy and confined worker without waiting for them: they come
-    /// up (two Python interpreters, the sandbox applied) while the host observes, writes its
-    /// records and waits for the model, and [`Self::run`] takes them. On by default
-    /// (`prestart`); a worker started this way that no program uses is stopped on drop.
+    /// Starts a program's proxy and confined worker without waiting for them: the next program's
+    /// come up (two Python interpreters, the sandbox applied) while the current one runs, and
+    /// [`Self::run`] takes them. On by default (`prestart`); a worker started this way that no
+    /// program uses is stopped on drop.
     fn launch(&mut self) -> anyhow::Result<Launched> {
         self.prepare()?;
         self.starts += 1;
@@ -411,8 +411,9 @@ impl Worker {
         let cgroup = make_cgroup(&name_cg, self.cfg.limits.pids);
         let policy = serde_json::to_string(&self.policy(cgroup.clone())?)?;
         let (status_r, status_w) = std::io::pipe()?;
-        let out_path = self.cfg.log_dir.join("worker.out");
-        let err_path = self.cfg.log_dir.join("worker.err");
+        // One pair of files per worker: the next one starts while this one still writes.
+        let out_path = self.cfg.log_dir.join(format!("worker-{}.out", self.starts));
+        let err_path = self.cfg.log_dir.join(format!("worker-{}.err", self.starts));
         let mut cmd = Command::new(crate::sibling("r2g-sandbox")?);
         cmd.arg(policy)
             .arg("5")
@@ -479,6 +480,8 @@ impl Worker {
             Some(l) => l,
             None => self.launch()?,
         };
+        // The next program's processes come up while this one runs.
+        self.prestart_next();
         self.proxy_ready(&mut launched.proxy)?;
         launched.proxy.cmd(
             &serde_json::json!({"cmd": "begin", "budget": budget.control_steps, "observe_only": budget.observe_only}),
@@ -615,7 +618,6 @@ impl Worker {
         }
         let raw = format!("{}{}", tail(&out_path, 2000), tail(&err_path, 2000));
         r.raw_output = raw;
-        self.prestart_next();
         Ok(r)
     }
 

@@ -727,6 +727,7 @@ fn lockstep_loop(
     let mut robot_seq = 0u64;
     let start = std::time::Instant::now();
     let mut last_beat = std::time::Instant::now();
+    let host_baseline = process::host_baseline();
     loop {
         health.cycles.fetch_add(1, Relaxed);
         health.ticks.store(stats.ticks, Relaxed);
@@ -786,7 +787,7 @@ fn lockstep_loop(
                 ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), None, &mut stats);
                 if robot_seq.is_multiple_of(10) {
                     let _ = ports.info_pub.send_copy(info);
-                } else if !process::host_baseline() {
+                } else if !host_baseline {
                     // A new agent gets the limits from history as soon as they are noted.
                     use iceoryx2::port::update_connections::UpdateConnections;
                     let _ = ports.info_pub.update_connections();

@@ -173,6 +173,7 @@ fn run() -> anyhow::Result<()> {
     let mut snapshot_dirty = true;
     let mut last_publish = std::time::Instant::now();
     let mut last_info = std::time::Instant::now();
+    let host_baseline = process::host_baseline();
     // This run's session: commands computed from another run's state are ignored.
     let session = ((u64::from(std::process::id()) << 32) ^ ipc_schema::monotonic_ns()) | 1;
     let publish = |sim: &Sim, seq: u64, cmd: u64, reset_id: u64| -> anyhow::Result<()> {
@@ -244,7 +245,7 @@ fn run() -> anyhow::Result<()> {
             // History reaches late subscribers with a new send...
             info_pub.send_copy(info)?;
             last_info = std::time::Instant::now();
-        } else if !stepped && !process::host_baseline() {
+        } else if !stepped && !host_baseline {
             // ... or when the publisher takes note of them: an agent connecting to an idle
             // instance has the camera list within one idle round, not up to 200 ms later.
             use iceoryx2::port::update_connections::UpdateConnections;
