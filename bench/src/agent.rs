@@ -90,6 +90,13 @@ pub fn run(episodes: u32) -> anyhow::Result<Value> {
     let mean = |f: &dyn Fn(&EpisodeResult) -> f64| rows.iter().map(f).sum::<f64>() / rows.len() as f64;
     let host_before = before.iter().map(|r| r.overhead_s / f64::from(r.responses.max(1)) * 1e3).sum::<f64>()
         / before.len().max(1) as f64;
+    // Medians too: on a shared machine one slow episode moves a mean.
+    let median = |v: &[EpisodeResult]| {
+        let mut x: Vec<f64> = v.iter().map(|r| r.overhead_s / f64::from(r.responses.max(1)) * 1e3).collect();
+        x.sort_by(f64::total_cmp);
+        x.get(x.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    let (median_after, median_before) = (median(&rows), median(&before));
     let per_decision = mean(&|r| (r.wall_s - r.model_s) / f64::from(r.responses.max(1)) * 1e3);
     let host = mean(&|r| r.overhead_s / f64::from(r.responses.max(1)) * 1e3);
     let exec = mean(&|r| r.exec_s);
@@ -109,6 +116,8 @@ pub fn run(episodes: u32) -> anyhow::Result<Value> {
         "host_only_per_decision_ms": host,
         "host_only_per_decision_ms_without_prestart": host_before,
         "host_only_after_over_before": host / host_before,
+        "host_only_median_ms": median_after,
+        "host_only_median_ms_without_prestart": median_before,
         "model_per_decision_ms": mean(&|r| r.model_s / f64::from(r.responses.max(1)) * 1e3),
         "sandboxed_programs_s": exec,
         "bare_programs_s": bare_s,
@@ -119,6 +128,7 @@ pub fn run(episodes: u32) -> anyhow::Result<Value> {
     println!("{:<44} {:>10}", "per decision: everything but model time", format!("{per_decision:.1} ms"));
     println!("{:<44} {:>10}", "per decision: host only (no model, no program)", format!("{host:.1} ms"));
     println!("{:<44} {:>10}", "  the same, the host as it was (baseline)", format!("{host_before:.1} ms"));
+    println!("{:<44} {:>10}", "  medians: now / the baseline", format!("{median_after:.1} / {median_before:.1} ms"));
     for (label, key) in [
         ("  episode start (reset, first observation)", "setup_ms"),
         ("  program proxy and sandbox start/stop", "program_start_ms"),
