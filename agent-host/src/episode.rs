@@ -114,6 +114,8 @@ pub struct EpisodeResult {
     pub model_s: f64,
     pub exec_s: f64,
     pub overhead_s: f64,
+    /// Where `overhead_s` went (see [`HostSplit`]).
+    pub host_split: HostSplit,
     pub executions: u32,
     pub violations: u32,
     pub stop_reason: String,
@@ -122,6 +124,27 @@ pub struct EpisodeResult {
     pub llm_source: String,
     pub run_dir: String,
     pub evaluation: Value,
+}
+
+/// The host's own time in an episode, by what it did (s): starting the episode (reset, first
+/// observation, prompts), starting and ending each program's proxy and confined worker,
+/// observing after each program (state and PNG images through the proxy), writing the records,
+/// and the rest (building messages and feedback, memory records).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct HostSplit {
+    pub setup_s: f64,
+    pub program_start_s: f64,
+    pub observe_s: f64,
+    pub records_s: f64,
+    pub other_s: f64,
+}
+
+/// Runs `f`, adding its wall time to `acc`.
+fn timed<T>(acc: &mut f64, f: impl FnOnce() -> T) -> T {
+    let t = Instant::now();
+    let r = f();
+    *acc += t.elapsed().as_secs_f64();
+    r
 }
 
 /// Writes a file whole or not at all (temporary name, then rename).
@@ -336,6 +359,9 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
     let raw_at = |round: u32| cfg.run_dir.join(format!("rounds/{round:03}/obs.npz")).display().to_string();
     let first = worker.host_cmd(json!({"cmd": "observe", "images": true, "raw": raw_at(0)}))?;
     let mut obs_before = "rounds/000/obs.npz".to_string();
+    // The first program's processes start while the first prompt is built and answered (not
+    // earlier: on two cores they would slow the reset and the first images).
+    worker.prestart_next();
     let profile = first["state"]["backend"].as_str().unwrap_or("simulation").to_string();
     let skills_text = match &cfg.skills {
         Some(Skills(source)) => {
@@ -384,6 +410,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         parts.push(Part::Png(png));
     }
     messages.push(Message { role: Role::User, parts });
+    let mut split = HostSplit { setup_s: t0.elapsed().as_secs_f64(), ..HostSplit::default() };
     let mut before = first;
     let mut observe_only = true;
     let mut executions = 0u32;
@@ -407,7 +434,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         out.tokens_out += completion.usage.output;
         out.tokens_reasoning += completion.usage.reasoning.unwrap_or(0);
         let dir = format!("rounds/{round:03}");
-        rec.file(&format!("{dir}/response.txt"), completion.text.as_bytes())?;
+        timed(&mut split.records_s, || rec.file(&format!("{dir}/response.txt"), completion.text.as_bytes()))?;
         let decision = Decision::parse(&completion.text);
         messages.push(Message::text(Role::Assistant, completion.text.clone()));
         let mut record = json!({
@@ -416,7 +443,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         });
         if let Some(why) = &decision.stop {
             if !observe_only {
-                rec.round(&record)?;
+                timed(&mut split.records_s, || rec.round(&record))?;
                 break why.clone();
             }
         }
@@ -425,17 +452,20 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         match &decision.code {
             Some(code) => {
                 executions += 1;
-                rec.file(&format!("{dir}/stage.py"), code.as_bytes())?;
+                timed(&mut split.records_s, || rec.file(&format!("{dir}/stage.py"), code.as_bytes()))?;
                 let budget = Budget { control_steps: if observe_only { 0 } else { cfg.control_steps }, observe_only };
                 let r = worker.run(code, &format!("stage-{executions}.py"), budget)?;
                 out.exec_s += r.wall_s;
+                split.program_start_s += r.host_s;
                 out.violations += u32::from(r.violation.is_some());
-                let after = worker.host_cmd(json!({"cmd": "observe", "images": true, "raw": raw_at(round)}))?;
-                rec.file(&format!("{dir}/calls.json"), &serde_json::to_vec(&r.calls)?)?;
+                let after = timed(&mut split.observe_s, || {
+                    worker.host_cmd(json!({"cmd": "observe", "images": true, "raw": raw_at(round)}))
+                })?;
+                timed(&mut split.records_s, || rec.file(&format!("{dir}/calls.json"), &serde_json::to_vec(&r.calls)?))?;
                 let left = cfg.max_decisions.saturating_sub(out.responses);
                 text = feedback_text(executions, &r, &before, &after, budget.control_steps, left, cfg.lockstep);
-                for (name, png) in images(&after) {
-                    rec.file(&format!("{dir}/{name}.png"), &png)?;
+                for (name, png) in timed(&mut split.observe_s, || images(&after)) {
+                    timed(&mut split.records_s, || rec.file(&format!("{dir}/{name}.png"), &png))?;
                     attach.push(Part::Png(png));
                 }
                 let memory = crate::memory::collect(&scratch, &cfg.memory_dir, &mut records_taken);
@@ -461,9 +491,11 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
             ));
             observe_only = false;
         }
-        rec.file(&format!("{dir}/feedback.txt"), text.as_bytes())?;
         record["feedback"] = json!(text);
-        rec.round(&record)?;
+        timed(&mut split.records_s, || {
+            rec.file(&format!("{dir}/feedback.txt"), text.as_bytes())?;
+            rec.round(&record)
+        })?;
         let mut parts = vec![Part::Text(text)];
         parts.extend(attach);
         messages.push(Message { role: Role::User, parts });
@@ -473,6 +505,9 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
     out.stop_reason = stop_reason;
     out.wall_s = t0.elapsed().as_secs_f64();
     out.overhead_s = (out.wall_s - out.model_s - out.exec_s).max(0.0);
+    split.other_s =
+        (out.overhead_s - split.setup_s - split.program_start_s - split.observe_s - split.records_s).max(0.0);
+    out.host_split = split;
     Ok(out)
 }
 

@@ -49,6 +49,9 @@ pub struct EpisodeOpts {
     pub perturb: Option<String>,
     /// Chooses skills for the episode's prompt (the `skills` crate's selection); None: none.
     pub skills: Option<crate::episode::Skills>,
+    /// The skill library `skills` selects from, for episodes run as separate processes
+    /// (`--skills use --library DIR`).
+    pub library: Option<PathBuf>,
 }
 
 /// The repo's scripted LLM server, replaying a recorded conversation; stopped on drop.
@@ -270,9 +273,7 @@ pub fn batch(
     episodes: u32,
     mut on_episode: impl FnMut(u32, &anyhow::Result<EpisodeResult>),
 ) -> anyhow::Result<Value> {
-    let root = root();
-    let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
-    let dir = o.out.clone().unwrap_or_else(|| root.join("runs").join("batches").join(format!("{}-{stamp}", o.gym)));
+    let dir = batch_dir(o);
     let mut rows = Vec::new();
     for i in 0..episodes {
         let seed = if o.seed == 0 { 0 } else { o.seed + u64::from(i) };
@@ -284,6 +285,74 @@ pub fn batch(
             Err(e) => rows.push(json!({"error": format!("{e:#}"), "success": false})),
         }
     }
+    summarize(o, &dir, rows)
+}
+
+fn batch_dir(o: &EpisodeOpts) -> PathBuf {
+    let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
+    o.out.clone().unwrap_or_else(|| root().join("runs").join("batches").join(format!("{}-{stamp}", o.gym)))
+}
+
+/// The `r2g episode` arguments that run `o` into `out` (one job of a batch on a fleet).
+pub fn episode_args(o: &EpisodeOpts, out: &Path) -> Vec<String> {
+    let mut a: Vec<String> = vec!["episode".into(), o.gym.clone(), "--llm".into(), o.llm.clone()];
+    a.extend(["--provider".into(), o.provider.clone(), "--max-decisions".into(), o.max_decisions.to_string()]);
+    a.extend(["--control-steps".into(), o.control_steps.to_string(), "--wall-s".into(), o.wall_s.to_string()]);
+    a.extend(["--out".into(), out.display().to_string()]);
+    if o.wall {
+        a.push("--wall".into());
+    }
+    if let Some(rc) = &o.robot_config {
+        a.extend(["--robot-config".into(), rc.display().to_string()]);
+    }
+    if let Some(m) = &o.memory {
+        a.extend(["--memory".into(), m.display().to_string()]);
+    }
+    if o.seed != 0 {
+        a.extend(["--seed".into(), o.seed.to_string()]);
+    }
+    if let Some(p) = &o.perturb {
+        a.extend(["--perturb".into(), p.clone()]);
+    }
+    if let Some(lib) = &o.library {
+        a.extend(["--skills".into(), "use".into(), "--library".into(), lib.display().to_string()]);
+    }
+    a
+}
+
+/// [`batch`] on a fleet: every episode an `r2g episode` job on `backend` (local workers, or Ray
+/// tasks across machines), each into `<out>/episode-NNN`. Results stream back as they finish
+/// (`on_episode` with the episode's number and its result or error) into the same records and
+/// summary as a local batch. Paths in the options must be valid on every node.
+pub fn batch_on(
+    o: &EpisodeOpts,
+    episodes: u32,
+    backend: &fleet::Backend,
+    mut on_episode: impl FnMut(u32, &Value),
+) -> anyhow::Result<Value> {
+    let dir = std::path::absolute(batch_dir(o))?;
+    let jobs: Vec<fleet::Job> = (0..episodes)
+        .map(|i| fleet::Job { id: i as usize, args: episode_args(o, &dir.join(format!("episode-{i:03}"))) })
+        .collect();
+    let mut rows: Vec<(u64, Value)> = Vec::new();
+    fleet::run(&jobs, backend, &dir, |r| {
+        let i = r["id"].as_u64().unwrap_or(0);
+        let row = match (&r["value"], r.get("error")) {
+            (v @ Value::Object(_), _) => v.clone(),
+            (_, Some(e)) => json!({"error": e, "success": false}),
+            _ => {
+                json!({"error": format!("r2g episode exited with {}: {}", r["rc"], r["stderr_tail"].as_str().unwrap_or("").trim()), "success": false})
+            }
+        };
+        on_episode(i as u32, &row);
+        rows.push((i, row));
+    })?;
+    rows.sort_by_key(|(i, _)| *i);
+    summarize(o, &dir, rows.into_iter().map(|(_, r)| r).collect())
+}
+
+/// The batch's metrics over its episodes' results, written to `<dir>/batch.json`.
+fn summarize(o: &EpisodeOpts, dir: &Path, rows: Vec<Value>) -> anyhow::Result<Value> {
     let n = rows.len().max(1) as f64;
     let sum = |k: &str| rows.iter().map(|r| r[k].as_f64().unwrap_or(0.0)).sum::<f64>();
     let summary = json!({

@@ -3,6 +3,7 @@
 pub mod accept;
 pub mod agent;
 pub mod all;
+pub mod batch;
 pub mod control;
 pub mod fci;
 pub mod ik;

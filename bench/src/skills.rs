@@ -39,6 +39,7 @@ fn record_of(gym: &str, out: &Path) -> anyhow::Result<PathBuf> {
         seed: 0,
         perturb: None,
         skills: None,
+        library: None,
     };
     let r = session::episode(&o)?;
     if !r.success {

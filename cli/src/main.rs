@@ -72,6 +72,10 @@ enum Cmd {
         fci_gripper: bool,
         #[command(flatten)]
         placement: PlacementArgs,
+        /// Serve gymnasium environments (the `r2g_gym` package's live mode): the evaluator's
+        /// verdict and the episode seed on the instance's `env/` services, which `robo` never opens.
+        #[arg(long, conflicts_with = "fci")]
+        env: bool,
     },
     /// Run one program in the sandbox against a live gym (`r2g up ... --instance NAME`) and
     /// print a JSON result: stdout, stderr, exit, violation, control steps, what was enforced.
@@ -132,6 +136,8 @@ enum Cmd {
         learn_llm: String,
         #[command(flatten)]
         admit: skills_cmd::AdmitArgs,
+        #[command(flatten)]
+        fleet: FleetArgs,
     },
     /// The skill library (robot-skill/skills by default): list, show, extract from a run,
     /// admit, run without a model, select.
@@ -155,10 +161,17 @@ enum Cmd {
     /// tick), then judge the native trace. Ends with the evaluator's JSON line; exit status 0
     /// on success, 1 when the task failed.
     Replay {
-        /// Gym name, gym folder, or scene file.
-        gym: String,
+        /// Gym name, gym folder, or scene file; with --seeds, --workers or --ray several, or
+        /// `all` for the whole pack.
+        #[arg(required = true)]
+        gyms: Vec<String>,
         #[command(flatten)]
         placement: PlacementArgs,
+        /// Replay each gym with seeds 0..N, as one job per replay (a summary JSON at the end).
+        #[arg(long)]
+        seeds: Option<u64>,
+        #[command(flatten)]
+        fleet: FleetArgs,
         /// Post no actions at all: the evaluator must then report failure.
         #[arg(long)]
         do_nothing: bool,
@@ -301,8 +314,22 @@ impl TryFrom<EpisodeArgs> for session::EpisodeOpts {
             seed: a.placement.seed,
             perturb: a.placement.perturb.map(|p| p.to_string()),
             skills: None,
+            library: None,
         })
     }
+}
+
+/// Where the episodes of a batch run (default: one after the other in this process).
+#[derive(clap::Args, Debug, Clone)]
+struct FleetArgs {
+    /// Run the episodes as Ray tasks: `auto` (the running cluster, else a local one for this
+    /// batch) or a cluster's address (fleet/MULTINODE.md). Needs `ray` (requirements-ray.txt).
+    #[arg(long, value_name = "auto|ADDRESS")]
+    ray: Option<String>,
+    /// Run this many episodes at once on this machine, each in its own process group and
+    /// shared-memory prefix (no Ray); with --ray, at most this many at once on the cluster.
+    #[arg(long)]
+    workers: Option<usize>,
 }
 
 /// Options shared by `r2g kin fk` and `r2g kin ik`.
@@ -487,6 +514,20 @@ enum BenchCmd {
         #[arg(long, default_value_t = 5.0)]
         sample_s: f64,
     },
+    /// Episodes per minute of lockstep demonstration replays and scripted agent episodes at 1, 2
+    /// and N workers, on local workers and as tasks of a local Ray cluster it starts and stops;
+    /// Ray's overhead per task and the parallel efficiency.
+    Batch {
+        /// The largest worker count (above the cores: oversubscription, labelled so).
+        #[arg(long, default_value_t = 4)]
+        workers: usize,
+        /// Replays per configuration.
+        #[arg(long, default_value_t = 8)]
+        replays: usize,
+        /// Scripted agent episodes per configuration.
+        #[arg(long, default_value_t = 4)]
+        agents: usize,
+    },
     /// The receiving process of `r2g bench ipc` (started by it).
     #[command(hide = true)]
     IpcPeer {
@@ -515,6 +556,7 @@ fn main() {
             fci,
             fci_gripper,
             placement,
+            env,
         } => {
             // Only `up` waits for the stop signals to shut its instance down in order; every other
             // command ends at once on them, and its instances' processes follow (die_with_parent).
@@ -528,7 +570,12 @@ fn main() {
                 },
                 None => launch::RobotSide::Sim,
             };
-            up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc, control_args, &side, &placement)
+            let mut sim_args: Vec<String> =
+                trace_dir.map(|d| vec!["--trace-dir".into(), d.display().to_string()]).unwrap_or_default();
+            if env {
+                sim_args.push("--env".into());
+            }
+            up(&gym, mode, &instance, render_hz, sim_args, rc, control_args, &side, &placement)
         }
         Cmd::Clear { instance } => runtime::operator::clear_fault(&instance).map(|(_cleared, reason)| {
             println!("{reason}");
@@ -555,7 +602,7 @@ fn main() {
             })
         }
         Cmd::Skills { which } => skills_cmd::run(which),
-        Cmd::Batch { episodes, opts, protocol: Some(p), learn_llm, admit } => {
+        Cmd::Batch { episodes, opts, protocol: Some(p), learn_llm, admit, fleet } => {
             if p != "learn" {
                 eprintln!("r2g: error: --skills-protocol takes `learn`");
                 std::process::exit(2);
@@ -563,8 +610,9 @@ fn main() {
             let library = opts.library();
             let lo =
                 skills::learn::LearnOpts { admit: admit.opts(), ..skills::learn::LearnOpts::new(library, &learn_llm) };
+            let backend = fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers);
             opts.try_into().and_then(|o: session::EpisodeOpts| {
-                skills::learn::protocol(&o, episodes, &lo, |arm, i, r| match r {
+                skills::learn::protocol(&o, episodes, &lo, backend.as_ref(), |arm, i, r| match r {
                     Ok(v) => {
                         eprintln!("r2g batch: seed {i} {arm}: success {} in {} responses", v["success"], v["responses"])
                     }
@@ -593,11 +641,19 @@ fn main() {
                 })
             })
         }
-        Cmd::Batch { episodes, opts, .. } => opts.episode_opts().and_then(|o| {
-            session::batch(&o, episodes, |i, r| match r {
-                Ok(r) => eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses),
-                Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),
-            })
+        Cmd::Batch { episodes, opts, fleet, .. } => opts.episode_opts().and_then(|o| {
+            match fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers) {
+                None => session::batch(&o, episodes, |i, r| match r {
+                    Ok(r) => eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses),
+                    Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),
+                }),
+                Some(b) => session::batch_on(&o, episodes, &b, |i, r| match r.get("error") {
+                    Some(e) => eprintln!("r2g batch: episode {i}: {}", e.as_str().unwrap_or("failed")),
+                    None => {
+                        eprintln!("r2g batch: episode {i}: success {} in {} responses", r["success"], r["responses"])
+                    }
+                }),
+            }
             .map(|v| {
                 println!("{v}");
                 // Failed tasks are results; a batch none of whose episodes could run at all (the
@@ -619,7 +675,26 @@ fn main() {
         }
         Cmd::Gyms => gyms(),
         Cmd::Service { which } => service::run(which),
-        Cmd::Replay { gym, placement, do_nothing, out } => replay(&gym, &placement, do_nothing, &out),
+        Cmd::Replay { gyms, placement, seeds, fleet, do_nothing, out } => {
+            let backend = fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers);
+            match (gyms.as_slice(), backend, seeds) {
+                ([gym], None, None) if gym != "all" => replay(gym, &placement, do_nothing, &out),
+                (_, _, _) if placement.perturb.is_some() => Err(anyhow::anyhow!(
+                    "--perturb applies to one replay (one gym, --seed N); give no --seeds, --workers or --ray with it"
+                )),
+                (_, backend, seeds) => {
+                    let gyms = if gyms.iter().any(|g| g == "all") { launch::gym_names() } else { gyms };
+                    let backend = backend.unwrap_or(fleet::Backend::Local(1));
+                    std::path::absolute(&out)
+                        .map_err(anyhow::Error::from)
+                        .and_then(|out| fleet::replays(&gyms, seeds.unwrap_or(1), &backend, &out))
+                        .map(|v| {
+                            println!("{v}");
+                            i32::from(v["success_rate"].as_f64() != Some(1.0))
+                        })
+                }
+            }
+        }
         Cmd::AuthorDemo { gym } => author_demo(&gym),
         Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => bench::sim::run(&gyms, frames).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Skills { gyms, seeds, first_seed, perturb, jobs, out } } => {
@@ -649,6 +724,9 @@ fn main() {
         }
         Cmd::Bench { which: BenchCmd::Soak { minutes, gym, stall_s, sample_s } } => {
             bench::soak::run(&bench::soak::Options { minutes, gym, stall_s, sample_s }).map(|_| 0)
+        }
+        Cmd::Bench { which: BenchCmd::Batch { workers, replays, agents } } => {
+            bench::batch::run(workers, replays, agents).map(|_| 0)
         }
         Cmd::Bench { which: BenchCmd::Ipc { only } } => bench::ipc::run(only.as_deref()).map(|_| 0),
         Cmd::Bench { which: BenchCmd::IpcPeer { transport, payload, addr, cpu } } => (|| {
@@ -711,14 +789,14 @@ fn up(
     mode: ModeArg,
     instance: &str,
     render_hz: f64,
-    trace_dir: Option<&std::path::Path>,
+    sim_args: Vec<String>,
     robot_config: std::path::PathBuf,
     control_args: Vec<String>,
     side: &launch::RobotSide,
     placement: &PlacementArgs,
 ) -> anyhow::Result<i32> {
     placement.check()?;
-    let mut sim_args = trace_dir.map(|d| vec!["--trace-dir".into(), d.display().to_string()]).unwrap_or_default();
+    let mut sim_args = sim_args;
     sim_args.extend(placement.sim_args());
     let opts = UpOptions {
         scene: launch::resolve_scene(gym)?,

@@ -138,15 +138,67 @@ pub fn with_skills(o: &EpisodeOpts, library: &Path) -> anyhow::Result<EpisodeOpt
         fingerprint: crate::fingerprint::of(&scene, &rc)?,
         opts: SelectOpts::default(),
     };
-    Ok(EpisodeOpts { skills: Some(Skills(std::sync::Arc::new(source))), ..o.clone() })
+    Ok(EpisodeOpts {
+        skills: Some(Skills(std::sync::Arc::new(source))),
+        library: Some(library.to_path_buf()),
+        ..o.clone()
+    })
 }
 
-/// `r2g batch --skills learn`: per seed, episode without skills → extraction → episode with the
-/// selected skills; per-arm figures with seeds paired.
+/// The `r2g batch` arguments that run the protocol on one seed into `out` with its own library
+/// (one job of the protocol on a fleet).
+fn seed_job(o: &EpisodeOpts, seed: u64, learn_opts: &LearnOpts, out: &Path) -> Vec<String> {
+    let mut a = vec![
+        "batch".to_string(),
+        o.gym.clone(),
+        "--episodes".into(),
+        "1".into(),
+        "--skills-protocol".into(),
+        "learn".into(),
+    ];
+    a.extend([
+        "--llm".into(),
+        o.llm.clone(),
+        "--provider".into(),
+        o.provider.clone(),
+        "--learn-llm".into(),
+        learn_opts.llm.clone(),
+    ]);
+    a.extend([
+        "--max-decisions".into(),
+        o.max_decisions.to_string(),
+        "--control-steps".into(),
+        o.control_steps.to_string(),
+    ]);
+    a.extend(["--seed".into(), seed.to_string(), "--out".into(), out.display().to_string()]);
+    a.extend(["--library".into(), out.join("library").display().to_string()]);
+    match &learn_opts.admit {
+        Some(ad) => {
+            a.extend(["--admit-runs".into(), ad.seeds.len().to_string(), "--admit-share".into(), ad.share.to_string()]);
+            if let Some(p) = &ad.perturb {
+                a.extend(["--admit-perturb".into(), p.clone()]);
+            }
+        }
+        None => a.extend(["--admit-runs".into(), "0".into()]),
+    }
+    if let Some(p) = &o.perturb {
+        a.extend(["--perturb".into(), p.clone()]);
+    }
+    if let Some(rc) = &o.robot_config {
+        a.extend(["--robot-config".into(), rc.display().to_string()]);
+    }
+    a
+}
+
+/// `r2g batch --skills-protocol learn`: per seed, an episode without skills → extraction → an
+/// episode with the selected skills; per-arm figures with seeds paired. On a fleet (`backend`),
+/// each seed is one job learning into its own library (the paper's protocol: the second
+/// execution uses what the first taught), the rows streamed into the same summary.
 pub fn protocol(
     o: &EpisodeOpts,
     episodes: u32,
     learn_opts: &LearnOpts,
+    backend: Option<&fleet::Backend>,
     mut on_episode: impl FnMut(&str, u32, &anyhow::Result<Value>),
 ) -> anyhow::Result<Value> {
     let root = session::root();
@@ -166,8 +218,35 @@ pub fn protocol(
         }
     };
     let mut rows = Vec::new();
-    for i in 0..episodes {
-        let seed = o.seed + u64::from(i) + u64::from(o.seed == 0 && o.perturb.is_some());
+    let seed_of = |i: u32| o.seed + u64::from(i) + u64::from(o.seed == 0 && o.perturb.is_some());
+    if let Some(b) = backend {
+        let jobs: Vec<fleet::Job> = (0..episodes)
+            .map(|i| fleet::Job {
+                id: i as usize,
+                args: seed_job(o, seed_of(i), learn_opts, &dir.join(format!("seed-{i:03}"))),
+            })
+            .collect();
+        let mut got: Vec<(u64, Value)> = Vec::new();
+        fleet::run(&jobs, b, &dir, |r| {
+            let i = r["id"].as_u64().unwrap_or(0);
+            let row = match &r["value"]["per_seed"][0] {
+                v @ Value::Object(_) => v.clone(),
+                _ => {
+                    json!({"seed": seed_of(i as u32), "error": r.get("error").cloned().unwrap_or_else(|| json!(format!("r2g batch exited with {}: {}", r["rc"], r["stderr_tail"].as_str().unwrap_or("").trim())))})
+                }
+            };
+            for arm in ["without", "with"] {
+                let v =
+                    if row[arm].is_object() { Ok(row[arm].clone()) } else { Err(anyhow::anyhow!("{}", row["error"])) };
+                on_episode(if arm == "with" { "with skills" } else { "without skills" }, i as u32, &v);
+            }
+            got.push((i, row));
+        })?;
+        got.sort_by_key(|(i, _)| *i);
+        rows = got.into_iter().map(|(_, r)| r).collect();
+    }
+    for i in 0..if backend.is_some() { 0 } else { episodes } {
+        let seed = seed_of(i);
         let first =
             EpisodeOpts { out: Some(dir.join(format!("episode-{i:03}-without"))), seed, skills: None, ..o.clone() };
         let a = session::episode(&first).map(|r| serde_json::to_value(&r).unwrap_or(Value::Null));
