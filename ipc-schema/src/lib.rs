@@ -328,7 +328,9 @@ pub struct RobotState {
     /// Bit 0: an `operator_required` fault holds the arm (Franka profile). Bit 1: the robot
     /// side publishes no state; the arm holds and requests are refused until it is back.
     /// Bit 2: the gripper reports a fault or went silent ([`RobotState::gripper_error`]); the
-    /// arm holds and chunks are refused until it is clear.
+    /// arm holds and chunks are refused until it is clear. Bit 3 (with bit 2): that is the
+    /// gripper not acting yet or a condition that ends by itself (starting, activating, a minor
+    /// device fault), not a fault.
     pub fault: u32,
     /// What the gripper knows about its fingers: a `GRASP_*` value.
     pub grasp: u32,
@@ -374,7 +376,9 @@ pub fn grasp_name(grasp: u32) -> &'static str {
 #[type_name("r2g.GripperState.v1")]
 pub struct GripperState {
     pub seq: u64,
-    /// CLOCK_MONOTONIC when the driver read this from the device, ns.
+    /// CLOCK_MONOTONIC when the driver published this, ns: a new reading, or the newest one
+    /// again while the driver waits (on an answer, a reconnect, an activation), so that its
+    /// silence always means the driver itself stopped.
     pub published_ns: u64,
     /// Opening of one finger, m (as [`SimState::finger_m`]).
     pub finger_m: f64,
@@ -388,7 +392,9 @@ pub struct GripperState {
     pub current_ma: f64,
     /// Round trip of the last poll (request sent → answer parsed), µs.
     pub poll_us: u32,
-    pub _pad: u32,
+    /// 1 when `fault` ends by itself and needs nobody (activating, a minor device fault such as
+    /// a temperature warning): the arm holds while it lasts, but no operator is asked for.
+    pub clears_itself: u32,
     pub fault_text: [[u8; 32]; ERROR_TEXT_LEN / 32],
 }
 
