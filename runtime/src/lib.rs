@@ -178,9 +178,13 @@ impl Ports {
             reset_pub: ipc_schema::open_or_create_pubsub::<SimReset>(&node, &services.sim_reset(), Qos::CONTROL)?
                 .publisher_builder()
                 .create()?,
-            robot_pub: ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)?
-                .publisher_builder()
-                .create()?,
+            robot_pub: ipc_schema::open_or_create_pubsub::<RobotState>(
+                &node,
+                &services.robot_state(),
+                Qos::ROBOT_STATE,
+            )?
+            .publisher_builder()
+            .create()?,
             info_pub: ipc_schema::open_or_create_pubsub::<RuntimeInfo>(&node, &services.runtime_info(), Qos::STREAM)?
                 .publisher_builder()
                 .create()?,
