@@ -5,7 +5,6 @@ the same frames on r2g-robotiq's side, so a misreading of the map cannot hide on
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -14,9 +13,10 @@ from typing import Iterator
 import pytest
 import serial
 
+from conftest import need_program
 from robotiq_rig import PYTHON, SIM, stop
 
-pytestmark = pytest.mark.skipif(shutil.which("socat") is None, reason="socat is missing (make test installs it)")
+need_program("socat", "socat is missing (scripts/install-deps.sh installs it; make test does)")
 
 
 def crc16(b: bytes) -> bytes:
