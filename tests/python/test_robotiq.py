@@ -233,14 +233,18 @@ def test_the_port_vanishing_mid_grasp_fails_the_chunk_and_holds_the_arm(rig: Rig
     q = list(robo.get_state([])["joint"])
     far = list(q)
     far[6] += 0.3
-    # The line goes 0.25 s into the chunk (a timer thread; robo stays on this thread).
+    # The line goes once the fingers have started closing: the chunk runs (a thread that talks
+    # only to the simulator; robo stays on this thread).
     unplugged = {}
 
     def unplug() -> None:
+        deadline = time.monotonic() + 10
+        while rig.control()["position"] < 20 and time.monotonic() < deadline:
+            time.sleep(0.005)
         unplugged["t"] = time.monotonic()
         rig.unplug()
 
-    timer = threading.Timer(0.25, unplug)
+    timer = threading.Thread(target=unplug)
     timer.start()
     ok = robo.post_actions({"actions": [far + [1.0]], "type": "joint", "freq": 1.0})
     timer.join()
