@@ -6,7 +6,7 @@
 //! What it adds to the pixels the host hands it:
 //! - **time on the runtime's clock**: the host gives the exposure time on CLOCK_MONOTONIC; the
 //!   frame carries the robot time of that instant, interpolated between the runtime's two states
-//!   published around it ([`place`]), so `robo`'s "not older than the last motion" check works
+//!   published around it (`place`), so `robo`'s "not older than the last motion" check works
 //!   as for rendered frames;
 //! - **the camera's pose** from the robot config's calibration (as the runtime read and reported
 //!   it, [`ipc_schema::RuntimeInfo::calibration`]): fixed (`base_from_camera`), or on the hand
