@@ -34,6 +34,7 @@ import signal
 import sys
 import threading
 import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,11 @@ def monotonic_from_system_ms(t_ms: float) -> int:
     return int(round(t_ms * 1e6)) - offset
 
 
+# What Source.read returns: rgb (H, W, 3) uint8, depth_m (H, W) float32 or None, the device's
+# (fx, fy, cx, cy) or None, the exposure on CLOCK_MONOTONIC (ns), and the clock it came from.
+Frame = tuple[np.ndarray, "np.ndarray | None", "tuple[float, float, float, float] | None", int, str]
+
+
 class Source:
     """One camera. `open()` starts it (ConfigError if it cannot), `read(timeout_s)` returns the
     newest frame as (rgb, depth_m or None, (fx, fy, cx, cy) or None, captured_ns, time_domain)
@@ -78,24 +84,16 @@ class Source:
     def open(self) -> None:
         raise NotImplementedError
 
-    def read(self, timeout_s: float):
+    def read(self, timeout_s: float) -> Frame | None:
         raise NotImplementedError
 
     def close(self) -> None:
         raise NotImplementedError
 
-    def __iter__(self):
-        """Frames until the camera has none for STALL_S (TimeoutError); open it first."""
-        while True:
-            f = self.read(STALL_S)
-            if f is None:
-                raise TimeoutError(f"no frame for {STALL_S:.0f} s from {self.what}")
-            yield f
-
 
 # ---- librealsense: a real device, or the software device; one path after that ----
 
-def _rs():
+def _rs() -> types.ModuleType:
     try:
         import pyrealsense2 as rs
     except ImportError as e:
@@ -121,7 +119,8 @@ class RealSenseSource(Source):
         self.incomplete = 0  # framesets without both streams, skipped
 
     # The device: a real one found by serial; ReplaySource hands over a software device.
-    def device(self):
+    def device(self) -> object:
+        """The librealsense device to open (a real one, found by its serial number)."""
         rs = _rs()
         found = {}
         for d in rs.context().query_devices():
@@ -134,7 +133,7 @@ class RealSenseSource(Source):
             raise ConfigError(f"no RealSense with serial {self.serial} (found: {listed or 'none'})")
         return found[self.serial]
 
-    def _pick(self, sensors, stream, fmt, size):
+    def _pick(self, sensors, stream, fmt, size) -> tuple[int, object]:
         """(sensor index, profile) of `stream` in `fmt` at the fps: at `size`, or for depth (size
         None) the size nearest the colour image's."""
         best = None
@@ -206,14 +205,14 @@ class RealSenseSource(Source):
                 and np.allclose(e.rotation, [1, 0, 0, 0, 1, 0, 0, 0, 1], atol=1e-7)
                 and np.allclose(e.translation, 0, atol=1e-7))
 
-    def read(self, timeout_s: float):
+    def read(self, timeout_s: float) -> Frame | None:
         try:
             return self._read(timeout_s)
         except RuntimeError as e:  # librealsense failing mid-stream: no frame, and the reason
             self.problem = f"librealsense: {e}"
             return None
 
-    def _read(self, timeout_s: float):
+    def _read(self, timeout_s: float) -> Frame | None:
         rs = _rs()
         ok, fs = self.sync.try_wait_for_frames(max(1, int(timeout_s * 1000)))
         if not ok:
@@ -284,13 +283,13 @@ class ReplaySource(RealSenseSource):
     """The RealSense path on librealsense's software device: a colour sensor (and a depth sensor
     unless depth=False) whose streams carry the .npz's intrinsics, identity extrinsics between
     them, fed in a loop at `fps` by a thread (system-time stamps of the moment each frame is
-    fed, as a camera stamps its exposure)."""
+    fed, less the file's `latency_s`, as a camera stamps its exposure)."""
 
     def __init__(self, path: Path, width: int, height: int, fps: int, depth: bool) -> None:
         super().__init__(width, height, fps, depth)
         self.path = Path(path)
         self.what = f"replay {self.path}"
-        self.rgb, self.counts, self.k, self.depth_scale = self._load()
+        self.rgb, self.counts, self.k, self.depth_scale, self.latency_s = self._load()
         n, h, w, _ = self.rgb.shape
         if (w, h) != (width, height):
             raise SizeChanged(f"the replay's frames are {w}x{h}, configured {width}x{height}")
@@ -303,7 +302,7 @@ class ReplaySource(RealSenseSource):
         self.stop_feeding = threading.Event()
         self.fed = 0
 
-    def _load(self):
+    def _load(self) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float, float, float], float, float]:
         try:
             with np.load(self.path) as f:
                 data = {k: f[k] for k in f.files}
@@ -321,10 +320,13 @@ class ReplaySource(RealSenseSource):
         try:
             k = tuple(float(data[c]) for c in ("fx", "fy", "cx", "cy"))
             scale = float(data["depth_scale"]) if "depth_scale" in keys else 0.001
+            latency_s = float(data["latency_s"]) if "latency_s" in keys else 0.0
         except (TypeError, ValueError) as e:
-            raise ConfigError(f"fx, fy, cx, cy and depth_scale must be scalars ({e})")
+            raise ConfigError(f"fx, fy, cx, cy, depth_scale and latency_s must be scalars ({e})")
         if not (scale > 0 and np.isfinite(scale)):
             raise ConfigError(f"depth_scale must be a positive number of metres per count, not {scale}")
+        if not (0 <= latency_s <= 1):
+            raise ConfigError(f"latency_s must be 0 to 1 s (exposure to delivery), not {latency_s}")
         counts = None
         if "depth_m" in keys:
             d = data["depth_m"]
@@ -338,9 +340,10 @@ class ReplaySource(RealSenseSource):
             # Z16 counts; what Z16 cannot hold (NaN, <= 0, beyond 65535 counts) is "no reading".
             c = np.rint(np.asarray(d, dtype=np.float64) / scale)
             counts = np.where(np.isfinite(c) & (c > 0) & (c <= 65535), c, 0).astype(np.uint16)
-        return np.ascontiguousarray(rgb), counts, k, scale
+        return np.ascontiguousarray(rgb), counts, k, scale, latency_s
 
-    def device(self):
+    def device(self) -> object:
+        """librealsense's software device with the replay's streams."""
         rs = _rs()
         n, h, w, _ = self.rgb.shape
         k = rs.intrinsics()
@@ -378,7 +381,7 @@ class ReplaySource(RealSenseSource):
         self.feeder = threading.Thread(target=self._feed, name="replay-feeder", daemon=True)
         self.feeder.start()
 
-    def _frame(self, rs, profile, pixels, bpp, t_ms, i):
+    def _frame(self, rs, profile, pixels, bpp, t_ms, i) -> object:
         # A new software_video_frame per frame: its `pixels` setter copies the array into a
         # buffer that librealsense frees when the frame is released, so one must never be
         # reused (setting pixels again would free that buffer a second time).
@@ -402,7 +405,9 @@ class ReplaySource(RealSenseSource):
         i = 0
         try:
             while not self.stop_feeding.is_set():
-                t_ms = time.time_ns() / 1e6
+                # The exposure: `latency_s` before it is fed, as a camera delivers a frame after
+                # exposing it.
+                t_ms = time.time_ns() / 1e6 - self.latency_s * 1e3
                 if self.ds is not None:  # depth first: the syncer pairs it with the colour frame
                     d = self.counts[i % len(self.counts)]
                     self.ds.on_video_frame(self._frame(rs, self.dprof, d, 2, t_ms, i))
@@ -491,14 +496,14 @@ class UvcSource(Source):
         self.dev, self.cap, self.v4l2, self.V4L2Error = dev, cap, v4l2, V4L2Error
         self.problem = None
 
-    def read(self, timeout_s: float):
+    def read(self, timeout_s: float) -> Frame | None:
         try:
             return self._read(timeout_s)
         except (OSError, self.V4L2Error) as e:  # e.g. ENODEV: unplugged
             self.problem = f"V4L2: {e}"
             return None
 
-    def _read(self, timeout_s: float):
+    def _read(self, timeout_s: float) -> Frame | None:
         ready, _, _ = select.select([self.dev], [], [], timeout_s)
         if not ready:
             return None

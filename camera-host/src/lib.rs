@@ -5,12 +5,12 @@
 //!
 //! What it adds to the pixels the host hands it:
 //! - **time on the runtime's clock**: the host gives the exposure time on CLOCK_MONOTONIC; the
-//!   frame carries the robot time of that instant (from the runtime's newest state:
-//!   `timestamp_s + (captured − published)`), so `robo`'s "not older than the last motion"
-//!   check works as for rendered frames;
+//!   frame carries the robot time of that instant, interpolated between the runtime's two states
+//!   published around it (`place`), so `robo`'s "not older than the last motion" check works
+//!   as for rendered frames;
 //! - **the camera's pose** from the robot config's calibration (as the runtime read and reported
 //!   it, [`ipc_schema::RuntimeInfo::calibration`]): fixed (`base_from_camera`), or on the hand
-//!   (`flange_from_camera`), composed with the TCP pose of the runtime state nearest the exposure;
+//!   (`flange_from_camera`), composed with the TCP pose at the exposure, interpolated the same way;
 //! - **intrinsics** from the calibration file when it gives them (the image size must then
 //!   match), else the device's, as the host passes them.
 
@@ -19,7 +19,9 @@ use std::time::{Duration, Instant};
 
 use controllers::math;
 use ipc_schema::process;
-use ipc_schema::{CameraFrame, Pose, Qos, RobotState, RuntimeInfo, Services, MAX_IMAGE_HEIGHT, MAX_IMAGE_WIDTH};
+use ipc_schema::{
+    CameraFrame, FrameHeader, Pose, Qos, RobotState, RuntimeInfo, Services, MAX_IMAGE_HEIGHT, MAX_IMAGE_WIDTH,
+};
 use pyo3::buffer::PyBuffer;
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
@@ -27,10 +29,12 @@ use pyo3::types::PyDict;
 
 type Service = iceoryx2::prelude::ipc::Service;
 
-const MAX_RGB: usize = MAX_IMAGE_WIDTH * MAX_IMAGE_HEIGHT * 3;
-const MAX_PIXELS: usize = MAX_IMAGE_WIDTH * MAX_IMAGE_HEIGHT;
-/// Runtime states kept to find the one nearest an exposure (about 64 ms of ticks read in bursts).
-const KEPT_STATES: usize = 64;
+/// Runtime states kept to place an exposure between two of them: 256 ms of 1 kHz ticks, more
+/// than a camera's capture-to-publish latency.
+const KEPT_STATES: usize = 256;
+/// The states the subscriber holds between two publishes (every tick's, drained per frame;
+/// [`Qos::ROBOT_STATE`] allows up to 128).
+const STATE_BUFFER: usize = 128;
 
 type Transform = ([f64; 3], [f64; 4]);
 
@@ -89,9 +93,10 @@ impl Publisher {
             .subscriber_builder()
             .create()
             .map_err(ipc("runtime info subscriber"))?;
-        let robot = ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)
+        let robot = ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::ROBOT_STATE)
             .map_err(open)?
             .subscriber_builder()
+            .buffer_size(STATE_BUFFER)
             .create()
             .map_err(ipc("robot state subscriber"))?;
         // The calibration as the runtime read it: the runtime resends its info every 200 ms.
@@ -178,15 +183,6 @@ impl Publisher {
         })
     }
 
-    /// "base" (a fixed camera) or "flange" (a camera on the hand).
-    #[getter]
-    fn mount(&self) -> &'static str {
-        match self.mount {
-            Mount::Base(_) => "base",
-            Mount::Flange(..) => "flange",
-        }
-    }
-
     /// Publishes one frame: `rgb` uint8 (H, W, 3), `depth_m` float32 (H, W) in metres aligned to
     /// it or None, the pinhole intrinsics in pixels, and the exposure time on CLOCK_MONOTONIC.
     #[pyo3(signature = (rgb, depth_m, fx, fy, cx, cy, captured_ns))]
@@ -248,62 +244,54 @@ impl Publisher {
             }
             self.states.push_back(*s);
         }
-        let Some(state) = self.states.iter().min_by_key(|s| s.published_ns.abs_diff(captured_ns)).copied() else {
+        let Some(newest) = self.states.back() else {
             return Err(PyRuntimeError::new_err(format!(
                 "camera '{cam}': no state from the runtime yet, so the frame cannot be placed on its clock"
             )));
         };
-        let now = ipc_schema::monotonic_ns();
-        if state.published_ns + 1_000_000_000 < now {
+        if newest.published_ns + 1_000_000_000 < ipc_schema::monotonic_ns() {
             return Err(PyRuntimeError::new_err(format!(
                 "camera '{cam}': the runtime's newest state is more than 1 s old (the runtime stopped or hangs)"
             )));
         }
-        let dt_s = (captured_ns as f64 - state.published_ns as f64) * 1e-9;
-        let sim_time_s = state.timestamp_s + dt_s;
+        let at = place(&self.states, captured_ns);
         let base_from_camera = match self.mount {
             Mount::Base(t) => t,
             Mount::Flange(flange_from_camera, tcp_from_flange) => {
-                let base_from_tcp = (state.base_from_tcp.position_m, state.base_from_tcp.quat_xyzw);
-                math::compose(math::compose(base_from_tcp, tcp_from_flange), flange_from_camera)
+                math::compose(math::compose(at.base_from_tcp, tcp_from_flange), flange_from_camera)
             }
         };
+        let (state, sim_time_s) = (at.state, at.sim_time_s);
         let publisher = self.publisher.as_ref().ok_or_else(|| PyRuntimeError::new_err("the publisher is closed"))?;
         let mut sample = publisher.loan_uninit().map_err(ipc("camera sample"))?;
-        let p = sample.payload_mut().as_mut_ptr();
         let n = w * h;
         self.seq += 1;
-        // SAFETY: p points at a CameraFrame-sized sample we own. Every header field is written
-        // below, the used part of `rgb` and `depth_m` is copied from buffers checked above to
-        // hold exactly that many C-contiguous elements, and the rest is zeroed, so every byte is
-        // initialised before assume_init.
-        let sample = unsafe {
-            (*p).seq = self.seq;
-            (*p).sim_time_s = sim_time_s;
-            (*p).state_seq = state.seq;
-            (*p).rendered_ns = captured_ns;
-            (*p).width = w as u32;
-            (*p).height = h as u32;
-            (*p).has_depth = u32::from(depth.is_some());
-            (*p).reset_id = state.reset_id as u32;
-            (*p).fx = fx;
-            (*p).fy = fy;
-            (*p).cx = cx;
-            (*p).cy = cy;
-            (*p).base_from_camera = Pose { position_m: base_from_camera.0, quat_xyzw: base_from_camera.1 };
-            let rgb_dst = std::ptr::addr_of_mut!((*p).rgb).cast::<u8>();
-            std::ptr::copy_nonoverlapping(rgb.buf_ptr().cast::<u8>(), rgb_dst, 3 * n);
-            std::ptr::write_bytes(rgb_dst.add(3 * n), 0, MAX_RGB - 3 * n);
-            let depth_dst = std::ptr::addr_of_mut!((*p).depth_m).cast::<f32>();
-            let used = if let Some(d) = &depth {
-                std::ptr::copy_nonoverlapping(d.buf_ptr().cast::<f32>(), depth_dst, n);
-                n
-            } else {
-                0
-            };
-            std::ptr::write_bytes(depth_dst.add(used), 0, MAX_PIXELS - used);
-            sample.assume_init()
+        let header = FrameHeader {
+            seq: self.seq,
+            sim_time_s,
+            state_seq: state.seq,
+            rendered_ns: captured_ns,
+            width: w as u32,
+            height: h as u32,
+            reset_id: state.reset_id as u32,
+            fx,
+            fy,
+            cx,
+            cy,
+            base_from_camera: Pose { position_m: base_from_camera.0, quat_xyzw: base_from_camera.1 },
         };
+        // SAFETY: both buffers were checked above to be C-contiguous with exactly these many
+        // elements (3 × w × h bytes, w × h floats), and they stay alive and unchanged while the
+        // GIL is held, which it is for this call.
+        let (rgb, depth) = unsafe {
+            (
+                std::slice::from_raw_parts(rgb.buf_ptr().cast::<u8>(), 3 * n),
+                depth.as_ref().map(|d| std::slice::from_raw_parts(d.buf_ptr().cast::<f32>(), n)),
+            )
+        };
+        CameraFrame::fill(sample.payload_mut(), &header, rgb, depth);
+        // SAFETY: `fill` wrote every byte of the sample.
+        let sample = unsafe { sample.assume_init() };
         sample.send().map_err(ipc("camera frame"))?;
         if let Some(w) = &self.wake {
             let _ = w.notify();
@@ -326,15 +314,47 @@ impl Publisher {
     }
 }
 
-/// CLOCK_MONOTONIC now, ns (the clock `captured_ns` is on).
-#[pyfunction]
-fn monotonic_ns() -> u64 {
-    ipc_schema::monotonic_ns()
+/// An exposure on the runtime's clock and the TCP pose then.
+struct Placed {
+    /// The state nearest the exposure (its seq and reset_id go into the frame).
+    state: RobotState,
+    sim_time_s: f64,
+    base_from_tcp: Transform,
+}
+
+/// Places an exposure at `captured_ns` (CLOCK_MONOTONIC) among the runtime's states, oldest
+/// first: between the two published around it, robot time and TCP pose interpolated (linear,
+/// and normalised linear for the rotation: 1 ms apart they differ by little); before the oldest
+/// or after the newest, that state's pose and its time shifted by the difference. `states` is
+/// not empty.
+fn place(states: &VecDeque<RobotState>, captured_ns: u64) -> Placed {
+    let pose = |s: &RobotState| (s.base_from_tcp.position_m, s.base_from_tcp.quat_xyzw);
+    let between = states
+        .iter()
+        .zip(states.iter().skip(1))
+        .find(|(a, b)| a.published_ns <= captured_ns && captured_ns <= b.published_ns && a.reset_id == b.reset_id);
+    if let Some((a, b)) = between.filter(|(a, b)| b.published_ns > a.published_ns) {
+        let f = (captured_ns - a.published_ns) as f64 / (b.published_ns - a.published_ns) as f64;
+        let ((pa, qa), (pb, mut qb)) = (pose(a), pose(b));
+        if qa.iter().zip(&qb).map(|(x, y)| x * y).sum::<f64>() < 0.0 {
+            qb = qb.map(|v| -v); // the same rotation, on qa's side
+        }
+        let lerp = |x: f64, y: f64| x + f * (y - x);
+        let p = std::array::from_fn(|i| lerp(pa[i], pb[i]));
+        let q = math::normalize(std::array::from_fn(|i| lerp(qa[i], qb[i])));
+        return Placed {
+            state: if f < 0.5 { *a } else { *b },
+            sim_time_s: lerp(a.timestamp_s, b.timestamp_s),
+            base_from_tcp: (p, q),
+        };
+    }
+    let nearest = states.iter().min_by_key(|s| s.published_ns.abs_diff(captured_ns)).copied().unwrap_or_default();
+    let dt_s = (captured_ns as f64 - nearest.published_ns as f64) * 1e-9;
+    Placed { state: nearest, sim_time_s: nearest.timestamp_s + dt_s, base_from_tcp: pose(&nearest) }
 }
 
 #[pymodule]
 fn r2g_camera(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Publisher>()?;
-    m.add_function(wrap_pyfunction!(monotonic_ns, m)?)?;
     Ok(())
 }

@@ -655,7 +655,14 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
     );
     let robot = match &side {
         RobotSide::Sim => {
-            let sim_args = if s.trace { format!("--trace-dir /var/lib/r2g/{name}/traces") } else { String::new() };
+            let mut sim_args: Vec<String> = Vec::new();
+            if s.trace {
+                sim_args.push(format!("--trace-dir /var/lib/r2g/{name}/traces"));
+            }
+            // Cameras that are devices: r2g-sim lists them for agents and renders no scene
+            // camera of that name (as `r2g up` tells it).
+            sim_args.extend(config.cameras.iter().map(|c| format!("--camera-host {}", c.name)));
+            let sim_args = sim_args.join(" ");
             format!(
                 "{header}[Service]\nEnvironment=R2G_SCENE={scene}\nEnvironment=R2G_RENDER_HZ={}\n\
                  Environment=\"R2G_SIM_ARGS={sim_args}\"\n{checkout}CPUAffinity={others}\n",
@@ -681,10 +688,7 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
     if let Some(r) = &robotiq {
         device_units.push((
             format!("r2g-robotiq@{name}.service"),
-            format!(
-                "{header}[Service]\n{checkout}CPUAffinity={others}\nDeviceAllow={} rw\n",
-                systemd_path(&r.port.display().to_string())?
-            ),
+            format!("{header}[Service]\n{checkout}CPUAffinity={others}\n{}", serial_device_allow(&r.port)?),
         ));
     }
     if !config.cameras.is_empty() {
@@ -807,6 +811,27 @@ fn plan(args: &InstallArgs) -> anyhow::Result<Plan> {
 
 /// A value written into a unit file: no whitespace, quotes, backslashes, `%` or `$` (which systemd
 /// would split, unquote or expand).
+/// The `DeviceAllow=` lines of the gripper's unit. systemd turns a path into the device number
+/// it has when the unit starts, so a USB adapter plugged again as another `ttyUSBn` would be
+/// refused for as long as r2g-robotiq runs (it never exits on a lost port): a USB serial port is
+/// allowed by its driver's class instead (`char-ttyUSB`, `char-ttyACM`: every port of that
+/// driver, and nothing else); a fixed port (`ttyS0`, ...) by its path.
+fn serial_device_allow(port: &Path) -> anyhow::Result<String> {
+    let resolved = std::fs::canonicalize(port).ok();
+    let name = resolved.as_deref().unwrap_or(port).file_name().and_then(|n| n.to_str()).unwrap_or("");
+    let classes: &[&str] = if name.starts_with("ttyUSB") {
+        &["char-ttyUSB"]
+    } else if name.starts_with("ttyACM") {
+        &["char-ttyACM"]
+    } else if resolved.is_none() && port.starts_with("/dev/serial") {
+        // A by-id or by-path link of an adapter not plugged in now: either USB serial driver.
+        &["char-ttyUSB", "char-ttyACM"]
+    } else {
+        return Ok(format!("DeviceAllow={} rw\n", systemd_path(&port.display().to_string())?));
+    };
+    Ok(classes.iter().map(|c| format!("DeviceAllow={c} rw\n")).collect())
+}
+
 fn systemd_path(v: &str) -> anyhow::Result<String> {
     if v.is_empty() || v.chars().any(|c| c.is_whitespace() || c.is_control() || "\"'\\%$".contains(c)) {
         bail!("{v:?} cannot be written into a unit file (no spaces, quotes, backslashes, % or $)");

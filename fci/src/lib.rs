@@ -1,5 +1,6 @@
 #![doc = include_str!("../README.md")]
 
+use std::cell::Cell;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
@@ -91,6 +92,8 @@ struct Ports {
     sim_info: SimInfo,
     wake: iceoryx2::port::listener::Listener<iceoryx2::prelude::ipc::Service>,
     control_wake: iceoryx2::port::notifier::Notifier<iceoryx2::prelude::ipc::Service>,
+    /// The largest `JointCommand::clear_seq` received (the operator's resets so far).
+    clear_seq: Cell<u64>,
 }
 
 impl Ports {
@@ -115,7 +118,13 @@ impl Ports {
         let wake = ipc_schema::open_or_create_event(&node, &services.sim_wake())?.listener_builder().create()?;
         let control_wake =
             ipc_schema::open_or_create_event(&node, &services.control_wake())?.notifier_builder().create()?;
-        Ok(Self { _node: node, state, command, info, sim_info, wake, control_wake })
+        Ok(Self { _node: node, state, command, info, sim_info, wake, control_wake, clear_seq: Cell::new(0) })
+    }
+
+    /// The operator's count of fault resets in the newest command received so far.
+    fn clear_seq(&self) -> anyhow::Result<u64> {
+        self.newest(0)?;
+        Ok(self.clear_seq.get())
     }
 
     fn publish(&self, s: SimState) -> anyhow::Result<()> {
@@ -135,6 +144,7 @@ impl Ports {
         loop {
             let mut found = None;
             while let Some(c) = self.command.receive()? {
+                self.clear_seq.set(self.clear_seq.get().max(c.clear_seq));
                 if c.session == session && c.state_seq == seq {
                     found = Some(*c);
                 }
@@ -154,6 +164,7 @@ impl Ports {
     fn newest(&self, session: u64) -> anyhow::Result<Option<JointCommand>> {
         let mut found = None;
         while let Some(c) = self.command.receive()? {
+            self.clear_seq.set(self.clear_seq.get().max(c.clear_seq));
             if c.session == session {
                 found = Some(*c);
             }
@@ -253,7 +264,6 @@ pub fn run(opts: &Options) -> anyhow::Result<Stats> {
     );
     let mut stats = Stats::default();
     let mut errored: Option<String> = None;
-    let mut clear_seen = 0u64;
     loop {
         if process::stop_requested() {
             return Ok(stats);
@@ -288,7 +298,10 @@ pub fn run(opts: &Options) -> anyhow::Result<Stats> {
                         eprintln!("r2g-fci: reflex ({why}); automatic recovery failed: {}", describe(&e));
                         let text = format!("{why}; recovery failed: {}", describe(&e));
                         // Wait for the operator's reset (the runtime counts them in every
-                        // command), publishing states meanwhile, then try again.
+                        // command), publishing states meanwhile, then try again. Only one made
+                        // after this failure counts: earlier ones (of another fault, or of the
+                        // gripper's) are in the count already.
+                        let mut clear_seen = ports.clear_seq()?;
                         loop {
                             let cleared = side.idle_until_cleared(&robot, &ports, &control, &text, clear_seen)?;
                             let Some(c) = cleared else { break };
@@ -411,10 +424,9 @@ impl<'m> Side<'m> {
             let rs = robot.read_once().map_err(|e| anyhow::anyhow!("reading the robot state: {}", describe(&e)))?;
             let s = self.state(&rs);
             ports.publish(s)?;
-            if let Some(c) = ports.newest(self.session)? {
-                if c.clear_seq > seen {
-                    return Ok(Some(c.clear_seq));
-                }
+            ports.newest(self.session)?;
+            if ports.clear_seq.get() > seen {
+                return Ok(Some(ports.clear_seq.get()));
             }
             std::thread::sleep(Duration::from_millis(2));
         }

@@ -63,6 +63,13 @@ fn run() -> anyhow::Result<()> {
         Some(p) => runtime::RobotConfig::load(p)?,
         None => runtime::RobotConfig::default(),
     };
+    if let (true, runtime::robot_config::Gripper::Robotiq2f85(r)) = (a.gripper, &config.gripper) {
+        anyhow::bail!(
+            "--gripper drives a Franka Hand, but the robot config names a Robotiq 2F-85 on {} (r2g-robotiq drives \
+             it): drop --gripper, or name \"franka_hand\" in the config",
+            r.port.display()
+        );
+    }
     let opts = fci::Options {
         instance: a.instance,
         scene: a.scene,

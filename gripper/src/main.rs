@@ -3,7 +3,6 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use anyhow::Context;
 use clap::Parser;
 
 #[derive(Parser, Debug)]
@@ -14,10 +13,13 @@ struct Args {
     /// config/robot.json: its "gripper" table names the port and the settings.
     #[arg(long)]
     robot_config: PathBuf,
-    /// Status poll period, ms (each poll is one Modbus exchange of about 2 ms at 115200 baud).
+    /// Status poll period, ms, 2 to 100 (each poll is one Modbus exchange of about 2 ms at
+    /// 115200 baud; the runtime holds the arm after 250 ms without a word from this driver).
     #[arg(long, default_value_t = 10)]
     poll_ms: u64,
-    /// Write the run's figures here as JSON when it ends.
+    /// Write the run's figures here as JSON: when it ends, and within a second of a line error
+    /// or a lost link while it runs. Without it, the environment's R2G_ROBOTIQ_STATS_OUT (how
+    /// tests and benches reach the driver `r2g up` starts).
     #[arg(long)]
     stats_out: Option<PathBuf>,
 }
@@ -33,7 +35,9 @@ fn run() -> anyhow::Result<()> {
     let a = Args::parse();
     ipc_schema::process::install_stop_signals();
     ipc_schema::process::die_with_parent();
-    anyhow::ensure!((2..=1000).contains(&a.poll_ms), "--poll-ms must be within 2..=1000");
+    let max_ms = gripper::MAX_POLL.as_millis() as u64;
+    anyhow::ensure!((2..=max_ms).contains(&a.poll_ms), "--poll-ms must be within 2..={max_ms}, got {}", a.poll_ms);
+    let stats_out = a.stats_out.or_else(|| std::env::var_os("R2G_ROBOTIQ_STATS_OUT").map(PathBuf::from));
     let config = runtime::RobotConfig::load(&a.robot_config)?;
     let runtime::robot_config::Gripper::Robotiq2f85(cfg) = &config.gripper else {
         anyhow::bail!(
@@ -42,15 +46,11 @@ fn run() -> anyhow::Result<()> {
             config.gripper.driver()
         );
     };
-    let stats = gripper::run(&a.instance, cfg, Duration::from_millis(a.poll_ms))?;
-    let json = stats.to_json();
-    // One line with the run's figures (journal, `r2g up`'s log, `bench/py/robotiq_bench.py`).
-    eprintln!("r2g-robotiq: stats {json}");
-    if let Some(p) = a.stats_out {
-        let tmp = p.with_extension("tmp");
-        std::fs::write(&tmp, serde_json::to_string_pretty(&json)?)
-            .with_context(|| format!("writing {}", tmp.display()))?;
-        std::fs::rename(&tmp, &p).with_context(|| format!("writing {}", p.display()))?;
+    let stats = gripper::run(&a.instance, cfg, Duration::from_millis(a.poll_ms), stats_out.as_deref())?;
+    // One line with the run's figures (journal, `r2g up`'s log, `bench/py/rig_bench.py`).
+    eprintln!("r2g-robotiq: stats {}", stats.to_json());
+    if let Some(p) = stats_out {
+        stats.write(&p)?;
     }
     Ok(())
 }

@@ -24,8 +24,6 @@ use rmodbus::{ErrorKind, ModbusProto};
 pub const OUTPUT_REGISTER: u16 = 0x03E8;
 /// First status register.
 pub const INPUT_REGISTER: u16 = 0x07D0;
-/// Stroke of the 2F-85: gap between the pads when fully open, m.
-pub const STROKE_M: f64 = 0.085;
 
 /// What the driver asks of the gripper (the three output registers).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -68,7 +66,7 @@ impl Status {
     pub fn from_registers(r: &[u16]) -> Self {
         let b = |i: usize| -> u8 {
             let reg = r.get(i / 2).copied().unwrap_or(0);
-            if i % 2 == 0 {
+            if i.is_multiple_of(2) {
                 (reg >> 8) as u8
             } else {
                 reg as u8
@@ -92,10 +90,29 @@ impl Status {
         self.activated && self.activation == 3
     }
 
-    /// Whether this fault stops the gripper until it is reactivated (codes 8 and above; 5 and 7
-    /// only say that an action waits for activation).
-    pub fn major_fault(&self) -> bool {
-        self.fault >= 0x08 || self.controller_fault != 0
+    /// What the manual says a fault means for the gripper's operation.
+    pub fn fault_class(&self) -> FaultClass {
+        match (self.controller_fault, self.fault) {
+            (k, _) if k != 0 => FaultClass::Major,
+            (_, 0x0A..=0x0F) => FaultClass::Major,
+            (_, 0x08 | 0x09) => FaultClass::Minor,
+            _ => FaultClass::None,
+        }
+    }
+
+    /// The fault byte as published (`GripperState::fault`): `kFLT` in the high nibble, `gFLT`
+    /// in the low one, so that a controller fault alone is not read as "no fault".
+    pub fn fault_code(&self) -> u8 {
+        (self.controller_fault << 4) | self.fault
+    }
+
+    /// The fault in words: the code, the manual's meaning and, when set, `kFLT`.
+    pub fn fault_text(&self) -> String {
+        match (self.controller_fault, self.fault) {
+            (0, g) => format!("Robotiq fault 0x{g:02X}: {}", fault_name(g)),
+            (k, 0) => format!("Robotiq controller fault kFLT 0x{k:X} (gFLT clear): see the controller's manual"),
+            (k, g) => format!("Robotiq fault 0x{g:02X}: {}; controller fault kFLT 0x{k:X}", fault_name(g)),
+        }
     }
 
     /// The grasp as the runtime reports it (`GRASP_*`).
@@ -113,14 +130,26 @@ impl Status {
     }
 }
 
+/// How a fault stops the gripper (the 2F-85 manual's classes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FaultClass {
+    /// No fault, or a priority fault (0x05, 0x07: an action waits for the activation).
+    None,
+    /// 0x08 (too hot) and 0x09 (no communication for 1 s): the gripper goes on by itself once
+    /// the cause is gone; no reset.
+    Minor,
+    /// 0x0A to 0x0F, or a controller fault (`kFLT`): only a reset (rACT 0, then 1) ends it.
+    Major,
+}
+
 /// The manual's meaning of a `gFLT` code, in our words.
 pub fn fault_name(code: u8) -> &'static str {
     match code {
         0x00 => "no fault",
         0x05 => "action delayed: the activation must finish first",
         0x07 => "the activation bit must be set before an action",
-        0x08 => "maximum operating temperature exceeded: let it cool",
-        0x09 => "no communication for at least 1 s",
+        0x08 => "maximum operating temperature exceeded: it goes on once cooled down",
+        0x09 => "no communication for at least 1 s: it goes on once requests arrive again",
         0x0A => "supply voltage under the minimum",
         0x0B => "automatic release in progress",
         0x0C => "internal fault: contact support",
@@ -287,12 +316,37 @@ mod tests {
         c
     }
 
+    /// Every code's class as the manual gives it: 0x08 and 0x09 are minor (no reset), 0x0A to
+    /// 0x0F major (a reset), 0x05 and 0x07 only delay an action; any kFLT is major.
+    #[test]
+    fn fault_classes_follow_the_manual() {
+        let class = |byte: u16| Status::from_registers(&[0x3100, byte << 8, 0]).fault_class();
+        for g in 0..=0x0Fu16 {
+            let want = match g {
+                0x08 | 0x09 => FaultClass::Minor,
+                0x0A..=0x0F => FaultClass::Major,
+                _ => FaultClass::None,
+            };
+            assert_eq!(class(g), want, "gFLT 0x{g:02X}");
+        }
+        // kFLT alone: a fault, published as a non-zero code that names it.
+        let k = Status::from_registers(&[0x3100, 0x3000, 0]);
+        assert_eq!((k.fault, k.controller_fault), (0, 3));
+        assert_eq!(k.fault_class(), FaultClass::Major);
+        assert_eq!(k.fault_code(), 0x30);
+        assert!(k.fault_text().contains("kFLT 0x3"), "{}", k.fault_text());
+        let both = Status::from_registers(&[0x3100, 0x3E00, 0]);
+        assert_eq!(both.fault_code(), 0x3E);
+        assert!(both.fault_text().contains("overcurrent") && both.fault_text().contains("kFLT"));
+    }
+
     #[test]
     fn faults_and_scale() {
         let s = Status::from_registers(&[0x3100, 0x0E00, 0x0000]);
-        assert!(s.major_fault() && s.fault == 0x0E);
+        assert!(s.fault_class() == FaultClass::Major && s.fault == 0x0E);
         assert!(fault_name(0x0E).contains("overcurrent"));
-        assert!(!Status::from_registers(&[0x3100, 0x0700, 0]).major_fault());
+        assert!(s.fault_text().starts_with("Robotiq fault 0x0E: overcurrent"));
+        assert_eq!(Status::from_registers(&[0x3100, 0x0700, 0]).fault_class(), FaultClass::None);
         let k = Scale { closed: 230 };
         assert_eq!(k.position(1.0), 0);
         assert_eq!(k.position(0.0), 230);

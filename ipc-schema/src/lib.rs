@@ -10,7 +10,7 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 /// Bumped whenever any payload below changes layout or meaning. Every service carries it as
 /// the attribute `r2g.schema`; a process of another build is refused when it connects.
-pub const SCHEMA_VERSION: u32 = 8;
+pub const SCHEMA_VERSION: u32 = 9;
 /// Attribute key that carries [`SCHEMA_VERSION`] on every service.
 pub const SCHEMA_ATTRIBUTE: &str = "r2g.schema";
 
@@ -338,7 +338,9 @@ pub struct RobotState {
     /// Bit 0: an `operator_required` fault holds the arm (Franka profile). Bit 1: the robot
     /// side publishes no state; the arm holds and requests are refused until it is back.
     /// Bit 2: the gripper reports a fault or went silent ([`RobotState::gripper_error`]); the
-    /// arm holds and chunks are refused until it is clear.
+    /// arm holds and chunks are refused until it is clear. Bit 3 (with bit 2): that is the
+    /// gripper not acting yet or a condition that ends by itself (starting, activating, a minor
+    /// device fault), not a fault.
     pub fault: u32,
     /// What the gripper knows about its fingers: a `GRASP_*` value.
     pub grasp: u32,
@@ -384,7 +386,9 @@ pub fn grasp_name(grasp: u32) -> &'static str {
 #[type_name("r2g.GripperState.v1")]
 pub struct GripperState {
     pub seq: u64,
-    /// CLOCK_MONOTONIC when the driver read this from the device, ns.
+    /// CLOCK_MONOTONIC when the driver published this, ns: a new reading, or the newest one
+    /// again while the driver waits (on an answer, a reconnect, an activation), so that its
+    /// silence always means the driver itself stopped.
     pub published_ns: u64,
     /// Opening of one finger, m (as [`SimState::finger_m`]).
     pub finger_m: f64,
@@ -398,7 +402,9 @@ pub struct GripperState {
     pub current_ma: f64,
     /// Round trip of the last poll (request sent → answer parsed), µs.
     pub poll_us: u32,
-    pub _pad: u32,
+    /// 1 when `fault` ends by itself and needs nobody (activating, a minor device fault such as
+    /// a temperature warning): the arm holds while it lasts, but no operator is asked for.
+    pub clears_itself: u32,
     pub fault_text: [[u8; 32]; ERROR_TEXT_LEN / 32],
 }
 
@@ -602,6 +608,63 @@ pub struct EnvAnswer {
     pub json: [u8; ENV_ANSWER_LEN],
 }
 
+/// Everything of a [`CameraFrame`] but its pixels (see [`CameraFrame::fill`]).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FrameHeader {
+    pub seq: u64,
+    pub sim_time_s: f64,
+    pub state_seq: u64,
+    pub rendered_ns: u64,
+    pub width: u32,
+    pub height: u32,
+    pub reset_id: u32,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub base_from_camera: Pose,
+}
+
+impl CameraFrame {
+    /// Writes a whole frame into a loaned, uninitialised sample: the header, `rgb` (row-major
+    /// RGB8) and `depth_m` (metres; `has_depth` when given), each cut to `width × height` pixels
+    /// and to the buffers' size, and zeros in the rest of both buffers, so that every byte is
+    /// initialised.
+    pub fn fill(dst: &mut core::mem::MaybeUninit<CameraFrame>, h: &FrameHeader, rgb: &[u8], depth_m: Option<&[f32]>) {
+        const PIXELS: usize = MAX_IMAGE_WIDTH * MAX_IMAGE_HEIGHT;
+        let n = (h.width as usize * h.height as usize).min(PIXELS);
+        let rgb_used = rgb.len().min(3 * n);
+        let depth_used = depth_m.map_or(0, |d| d.len().min(n));
+        let p = dst.as_mut_ptr();
+        // SAFETY: p points at a CameraFrame we may write; every field is a plain number (no
+        // drop of what was there), and the copies stay inside the two pixel buffers (`rgb_used`
+        // <= 3 × PIXELS, `depth_used` <= PIXELS), the rest of which is zeroed.
+        unsafe {
+            (*p).seq = h.seq;
+            (*p).sim_time_s = h.sim_time_s;
+            (*p).state_seq = h.state_seq;
+            (*p).rendered_ns = h.rendered_ns;
+            (*p).width = h.width;
+            (*p).height = h.height;
+            (*p).has_depth = u32::from(depth_m.is_some());
+            (*p).reset_id = h.reset_id;
+            (*p).fx = h.fx;
+            (*p).fy = h.fy;
+            (*p).cx = h.cx;
+            (*p).cy = h.cy;
+            (*p).base_from_camera = h.base_from_camera;
+            let rgb_dst = core::ptr::addr_of_mut!((*p).rgb).cast::<u8>();
+            core::ptr::copy_nonoverlapping(rgb.as_ptr(), rgb_dst, rgb_used);
+            core::ptr::write_bytes(rgb_dst.add(rgb_used), 0, 3 * PIXELS - rgb_used);
+            let depth_dst = core::ptr::addr_of_mut!((*p).depth_m).cast::<f32>();
+            if let Some(d) = depth_m {
+                core::ptr::copy_nonoverlapping(d.as_ptr(), depth_dst, depth_used);
+            }
+            core::ptr::write_bytes(depth_dst.add(depth_used), 0, PIXELS - depth_used);
+        }
+    }
+}
+
 /// Writes formatted text into a fixed buffer, dropping what does not fit (at a char boundary).
 struct FixedWriter<'a> {
     buf: &'a mut [u8],
@@ -754,6 +817,11 @@ impl Qos {
     /// Newest-sample streams with one trusted writer (state, command, info): one buffered
     /// sample, overwritten by the next. A second publisher is refused by iceoryx2.
     pub const STREAM: Qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 16, borrowed: 2 };
+    /// The runtime's robot state: a stream as [`Qos::STREAM`], but a subscriber may ask to keep
+    /// up to 128 states (128 ms of ticks): a camera host places each exposure between the two
+    /// states around it. Readers of the newest state only ask for a buffer of 1. Every opener
+    /// uses this (the creator sets the limit).
+    pub const ROBOT_STATE: Qos = Qos { history: 1, buffer: 128, max_publishers: 1, max_subscribers: 16, borrowed: 2 };
     /// Camera frames: one writer; each reader may keep a few frames borrowed in place.
     pub const CAMERA: Qos = Qos { history: 1, buffer: 1, max_publishers: 1, max_subscribers: 8, borrowed: 6 };
     /// Resets from the runtime to the sim-host: one writer, none lost.
@@ -981,7 +1049,9 @@ mod tests {
         // (RobotState); schema 4 the robot side's session (SimState, JointCommand); schema 5
         // pacing, the robot's own errors (SimState) and operator resets (JointCommand); schema 6
         // the calibration report (RuntimeInfo); schema 7 the gripper's grasp and error
-        // (RobotState) and the gripper driver's state (GripperState).
+        // (RobotState) and the gripper driver's state (GripperState); schema 8 no layout change
+        // but meanings: `GripperState::clears_itself` (was padding), `RobotState::fault` bit 3, a
+        // NaN finger target in `JointCommand`, the robot state's deeper subscriber buffer.
         assert_eq!(core::mem::size_of::<SimState>(), 248 + 8 + 4 + 4 + 8 + ERROR_TEXT_LEN);
         assert_eq!(core::mem::size_of::<JointCommand>(), 152);
         assert_eq!(core::mem::size_of::<Request>(), 40 + 8 * WAYPOINT_LEN * MAX_CHUNK);
@@ -989,11 +1059,11 @@ mod tests {
         assert_eq!(core::mem::size_of::<GripperState>(), 56 + ERROR_TEXT_LEN);
         assert_eq!(core::mem::size_of::<Reply>(), 48 + REASON_LEN);
         assert_eq!(core::mem::size_of::<RuntimeInfo>(), 392 + CALIBRATION_LEN);
-        // Schema 8: steps (RequestKind::Step, Request::step_ticks, Status::Stepped) and the
-        // environment's own services (EnvQuery, EnvAnswer).
+        // Schema 9 adds steps (RequestKind::Step, Request::step_ticks, Status::Stepped) and the
+        // environment's own services (EnvQuery, EnvAnswer) to 8.
         assert_eq!(core::mem::size_of::<EnvQuery>(), 24);
         assert_eq!(core::mem::size_of::<EnvAnswer>(), 32 + ENV_ANSWER_LEN);
-        assert_eq!(SCHEMA_VERSION, 8);
+        assert_eq!(SCHEMA_VERSION, 9);
     }
 }
 

@@ -38,7 +38,8 @@ pub enum RoboError {
     NoFrame(String, f64),
 }
 
-/// A frame made longer ago than this (CLOCK_MONOTONIC) is never shown in place of a fresh one.
+/// On the wall clock, a frame made longer ago than this (CLOCK_MONOTONIC) is never shown: its
+/// camera (or its camera host, or the renderer) stopped. Rendering runs at 0.5 Hz or more.
 const STALE_FRAME_NS: u64 = 2_000_000_000;
 
 fn ipc<E: std::fmt::Debug>(what: &'static str) -> impl Fn(E) -> RoboError {
@@ -154,11 +155,13 @@ impl Client {
         let pid = std::process::id();
         let node = ipc_schema::node(&format!("robo-{instance}-{pid}")).map_err(|e| RoboError::Ipc(e.to_string()))?;
         let open = |e: ipc_schema::SchemaError| RoboError::Ipc(e.to_string());
-        let robot_sub = ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)
-            .map_err(open)?
-            .subscriber_builder()
-            .create()
-            .map_err(ipc("robot state subscriber"))?;
+        let robot_sub =
+            ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::ROBOT_STATE)
+                .map_err(open)?
+                .subscriber_builder()
+                .buffer_size(1)
+                .create()
+                .map_err(ipc("robot state subscriber"))?;
         let info_sub = ipc_schema::open_or_create_pubsub::<RuntimeInfo>(&node, &services.runtime_info(), Qos::STREAM)
             .map_err(open)?
             .subscriber_builder()
@@ -286,6 +289,9 @@ impl Client {
         };
         let (not_before_reset, not_before_s) = (self.settled_reset, self.settled_s);
         let submitted_ns = self.submitted_ns;
+        // Lockstep time stands still while nothing moves, so a frame may be old and current;
+        // on the wall clock every frame is rendered or captured continually.
+        let wall = self.last_state.is_none_or(|s| s.mode != ipc_schema::Mode::Lockstep as u32);
         let t0 = Instant::now();
         loop {
             let cam = &mut self.cameras[i];
@@ -300,12 +306,13 @@ impl Client {
                 let h = f.header();
                 // Reset ids grow by one per reset; compared modulo 2^32.
                 let episodes_ahead = h.reset_id.wrapping_sub(not_before_reset) as i32;
-                let fresh = episodes_ahead > 0 || (episodes_ahead == 0 && h.sim_time_s >= not_before_s - 1e-9);
+                let young = ipc_schema::monotonic_ns().saturating_sub(h.rendered_ns) < STALE_FRAME_NS;
+                // A camera (host) that stopped delivering gives no frame, moved or not.
+                let fresh = (episodes_ahead > 0 || (episodes_ahead == 0 && h.sim_time_s >= not_before_s - 1e-9))
+                    && (young || !wall);
                 // After the wait, an older frame of this episode only if it was made after the
-                // last chunk was sent, and recently: a renderer that lags behind the motion. A
-                // camera (host) that stopped delivering gives no frame.
-                let recent = h.rendered_ns > submitted_ns
-                    && ipc_schema::monotonic_ns().saturating_sub(h.rendered_ns) < STALE_FRAME_NS;
+                // last chunk was sent, and recently: a renderer that lags behind the motion.
+                let recent = h.rendered_ns > submitted_ns && young;
                 if fresh || (episodes_ahead == 0 && recent && t0.elapsed() >= wait) {
                     return Ok(f.clone());
                 }

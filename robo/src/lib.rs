@@ -230,6 +230,11 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>, raw: boo
     let fault = (state.fault != 0).then(|| {
         if state.fault & 2 != 0 {
             "the robot side publishes no state (it stopped or hangs): the arm holds its last command and chunks are refused until it is back".to_string()
+        } else if state.fault & 12 == 12 && state.fault & 1 == 0 {
+            format!(
+                "the gripper cannot act now ({}): the arm holds and chunks are refused until it can; observe again later",
+                state.gripper_error_str()
+            )
         } else if state.fault & 4 != 0 && state.fault & 1 == 0 {
             format!(
                 "the gripper reports a fault ({}): the arm holds and chunks are refused until the gripper is clear",

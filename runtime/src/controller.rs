@@ -133,6 +133,10 @@ pub struct Controller {
     /// A gripper of its own (a driver process, not the robot side) reports a fault or is silent:
     /// the arm holds and chunks are refused while this lasts.
     gripper_fault: Option<Text>,
+    /// Whether that fault is one the Franka profile latches (see [`Self::gripper_reports`]).
+    gripper_latching: bool,
+    /// That gripper has acted on commands at least once.
+    gripper_ready: bool,
     /// What that gripper's own object detection says (a `GRASP_*` value); None: no such gripper,
     /// the controller judges the grasp from the measured fingers.
     gripper_grasp: Option<u32>,
@@ -144,6 +148,20 @@ pub struct Controller {
     stepped: Option<Reply>,
     /// The client that steps in this episode: in lockstep, time advances only inside steps.
     paced: Option<u64>,
+}
+
+/// What a gripper driven by its own process (`r2g-robotiq`) says on a tick (see
+/// [`Controller::gripper_reports`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum GripperReport<'a> {
+    /// It acts on commands; its fingers are open `finger_m` (m, one finger).
+    Ready { finger_m: f64 },
+    /// It cannot act now but needs nobody: no state from its driver yet, activating, a minor
+    /// fault that ends by itself. The arm holds and chunks are refused while it lasts.
+    NotReady(&'a str),
+    /// A device fault, the link to it lost, or its driver silent: as `NotReady`, and latched on
+    /// the Franka profile once the gripper has been ready (before that the start goes on).
+    Fault(&'a str),
 }
 
 /// A request the controller wants passed to the simulator.
@@ -258,6 +276,8 @@ impl Controller {
             clear_seq: 0,
             robot_error: ipc_schema::ROBOT_OK,
             gripper_fault: None,
+            gripper_latching: false,
+            gripper_ready: false,
             gripper_grasp: None,
             robot_reflexes: 0,
             last_reflex_s: None,
@@ -409,51 +429,70 @@ impl Controller {
     }
 
     /// What a gripper driven by its own process reports, every tick before [`Self::tick`]: its
-    /// object detection, and its fault (or silence) in words, None when it acts on commands. A
-    /// new fault stops the running chunk (`failed`; on the Franka profile `operator_required`,
-    /// latched until the operator clears it), the arm brakes to rest and holds, and chunks are
-    /// refused until the gripper is clear. Returns the stopped chunk's reply when there is one
-    /// and the arm already rests. Allocation-free.
-    pub fn gripper_reports(&mut self, grasp: u32, fault: Option<&str>) -> Option<Reply> {
+    /// object detection, and whether it acts on commands (see [`GripperReport`]). Anything but
+    /// [`GripperReport::Ready`] stops the running chunk (its reply, `failed`, goes out once the
+    /// arm rests), holds the arm and refuses chunks while it lasts. A [`GripperReport::Fault`]
+    /// after the gripper was once ready is latched on the Franka profile (`operator_required`
+    /// until the operator clears it). Allocation-free.
+    pub fn gripper_reports(&mut self, grasp: u32, report: GripperReport<'_>) {
         self.gripper_grasp = Some(grasp);
-        let Some(text) = fault else {
-            self.gripper_fault = None;
-            return None;
+        let (text, latching) = match report {
+            GripperReport::Ready { finger_m } => {
+                if !self.gripper_ready {
+                    // Its first reading: the fingers stay where they are until a chunk moves
+                    // them (until now the command carried no finger target at all).
+                    self.gripper_ready = true;
+                    let f = if finger_m.is_finite() { finger_m.clamp(0.0, self.robot.finger_max_m) } else { 0.0 };
+                    if let Some(t) = self.tracker.as_mut() {
+                        t.finger_m = f;
+                    }
+                    self.reference.gripper = self.robot.gripper_from_finger(f);
+                    self.finger_prev = f;
+                }
+                (self.gripper_fault, self.gripper_latching) = (None, false);
+                return;
+            }
+            GripperReport::NotReady(t) => (t, false),
+            // Before it was ever ready, the start is still going on (a port not there yet, no
+            // answer yet): that needs no operator.
+            GripperReport::Fault(t) => (t, self.gripper_ready),
         };
         let new = self.gripper_fault.is_none();
+        let escalates = latching && !self.gripper_latching;
         self.gripper_fault = Some(Text::of(format_args!("{text}")));
-        if !new {
-            return None;
-        }
+        self.gripper_latching = latching;
         let franka = self.reflexes.is_some();
-        if franka && self.fault.is_none() {
+        if escalates && franka && self.fault.is_none() {
             self.fault = Some(Text::of(format_args!("gripper: {text}")));
         }
-        let a = self.active.take()?;
+        if !new {
+            return;
+        }
+        let Some(a) = self.active.take() else { return };
         let n = self.plan.len();
         let done = self.reference.reached;
-        let mut r = if franka {
-            let why = format_args!(
-                "stopped: the gripper reports a fault ({text}) during waypoint {} of {n}; the arm holds and needs an operator: stop sending actions and report",
-                (done + 1).min(n)
-            );
-            Reply::formatted(a.id, a.client, Status::OperatorRequired, why)
-        } else {
-            let why = format_args!(
-                "stopped: the gripper reports a fault ({text}) during waypoint {} of {n}; the arm holds and chunks are refused until the gripper is clear",
-                (done + 1).min(n)
-            );
-            Reply::formatted(a.id, a.client, Status::Failed, why)
+        let at = (done + 1).min(n);
+        let mut r = match (latching, franka) {
+            (true, true) => Reply::formatted(a.id, a.client, Status::OperatorRequired, format_args!(
+                "stopped: the gripper reports a fault ({text}) during waypoint {at} of {n}; the arm holds and needs an operator: stop sending actions and report"
+            )),
+            (true, false) => Reply::formatted(a.id, a.client, Status::Failed, format_args!(
+                "stopped: the gripper reports a fault ({text}) during waypoint {at} of {n}; the arm holds and chunks are refused until the gripper is clear"
+            )),
+            (false, _) => Reply::formatted(a.id, a.client, Status::Failed, format_args!(
+                "stopped: the gripper cannot act ({text}) during waypoint {at} of {n}; the arm holds and chunks are refused until it can: observe again later"
+            )),
         };
         r.executed = done as u32;
-        let r = a.stamp(r);
-        if self.tracker.is_some() {
-            self.halting = true;
-            self.stop_reply = Some(r);
-            None
-        } else {
-            Some(r)
-        }
+        // Sent by the tick once the arm rests (a tracker exists from the first tick on).
+        self.stop_reply = Some(a.stamp(r));
+        self.halting = true;
+    }
+
+    /// Whether a gripper of its own has acted on commands at least once (its readings are the
+    /// fingers from then on).
+    pub fn gripper_ready(&self) -> bool {
+        self.gripper_ready
     }
 
     /// The gripper's fault while one holds the arm (see [`Self::gripper_reports`]).
@@ -779,9 +818,16 @@ impl Controller {
             return Some(Reply::formatted(id, client, Status::OperatorRequired, why));
         }
         if let Some(g) = self.gripper_fault {
-            self.last_rejection = Some("gripper_fault");
+            if self.gripper_latching {
+                self.last_rejection = Some("gripper_fault");
+                let why = format_args!(
+                    "the gripper reports a fault ({g}): the arm holds and chunks are refused until the gripper is clear; observe again later, or stop and report"
+                );
+                return Some(Reply::formatted(id, client, Status::Rejected, why));
+            }
+            self.last_rejection = Some("gripper_not_ready");
             let why = format_args!(
-                "the gripper reports a fault ({g}): the arm holds and chunks are refused until the gripper is clear; observe again later, or stop and report"
+                "the gripper cannot act now ({g}): the arm holds and chunks are refused until it can; observe again later"
             );
             return Some(Reply::formatted(id, client, Status::Rejected, why));
         }
@@ -1061,7 +1107,15 @@ impl Controller {
             state_seq: state.seq,
             q_rad: tracker.q_rad,
             dq_rad_s: tracker.dq_rad_s,
-            finger_m: tracker.finger_m,
+            finger_m: match (self.gripper_grasp.is_some(), self.gripper_ready) {
+                (false, _) => tracker.finger_m,
+                // A gripper of its own: no target (NaN: r2g-robotiq and r2g-sim keep their
+                // fingers) until its first reading became the target, then the waypoint's own
+                // goal, which the gripper ramps at its own speed (the tracker's ramp would be a
+                // new request every few counts).
+                (true, false) => f64::NAN,
+                (true, true) => self.robot.finger_from_gripper(self.reference.gripper),
+            },
             session: state.session,
             clear_seq: self.clear_seq,
         };
@@ -1144,15 +1198,19 @@ impl Controller {
         })
     }
 
-    /// First state, or first after a reset: hold exactly where the arm is.
+    /// First state, or first after a reset: hold exactly where the arm is. A gripper of its own
+    /// that has a target keeps it: it went on holding while the arm restarted, and its measured
+    /// opening as the new target would loosen a grasp.
     fn ensure_tracker(&mut self, state: &SimState) {
         if self.tracker.is_none() {
             self.restarted = true;
             let t = JointTracker::at_rest(state.q_rad, state.finger_m, &self.robot, &self.cfg);
+            let gripper =
+                if self.gripper_ready { self.reference.gripper } else { self.robot.gripper_from_finger(t.finger_m) };
             self.reference = Reference {
                 q_rad: t.q_rad,
                 dq_rad_s: [0.0; N_JOINTS],
-                gripper: self.robot.gripper_from_finger(t.finger_m),
+                gripper,
                 goal_q_rad: t.q_rad,
                 reached: 0,
                 finished: true,
@@ -1194,7 +1252,8 @@ impl Controller {
             external_force_n: self.force_n,
             fault: u32::from(self.fault.is_some())
                 | (u32::from(self.robot_lost_since_s.is_some()) << 1)
-                | (u32::from(self.gripper_fault.is_some()) << 2),
+                | (u32::from(self.gripper_fault.is_some()) << 2)
+                | (u32::from(self.gripper_fault.is_some() && !self.gripper_latching) << 3),
             grasp: self.gripper_grasp.unwrap_or_else(|| self.grasp(state)),
             gripper_error: self
                 .gripper_fault

@@ -338,8 +338,9 @@ impl Instance {
     fn wait_ready(&mut self, opts: &UpOptions) -> anyhow::Result<()> {
         let services = Services::new(&opts.instance)?;
         let node = ipc_schema::node(&format!("r2g-up-{}", opts.instance))?;
-        let robot = ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)?
+        let robot = ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::ROBOT_STATE)?
             .subscriber_builder()
+            .buffer_size(1)
             .create()?;
         let info = ipc_schema::open_or_create_pubsub::<SimInfo>(&node, &services.sim_info(), Qos::STREAM)?
             .subscriber_builder()

@@ -178,9 +178,13 @@ impl Ports {
             reset_pub: ipc_schema::open_or_create_pubsub::<SimReset>(&node, &services.sim_reset(), Qos::CONTROL)?
                 .publisher_builder()
                 .create()?,
-            robot_pub: ipc_schema::open_or_create_pubsub::<RobotState>(&node, &services.robot_state(), Qos::STREAM)?
-                .publisher_builder()
-                .create()?,
+            robot_pub: ipc_schema::open_or_create_pubsub::<RobotState>(
+                &node,
+                &services.robot_state(),
+                Qos::ROBOT_STATE,
+            )?
+            .publisher_builder()
+            .create()?,
             info_pub: ipc_schema::open_or_create_pubsub::<RuntimeInfo>(&node, &services.runtime_info(), Qos::STREAM)?
                 .publisher_builder()
                 .create()?,
@@ -218,26 +222,27 @@ impl Ports {
         })
     }
 
-    /// A gripper of its own: its newest state replaces the robot side's fingers in `latest`, and
-    /// the controller learns its grasp and its fault, or that it is silent. Allocation-free.
+    /// A gripper of its own: takes its newest state into `g`, and the controller learns its
+    /// grasp and whether it acts on commands. Allocation-free.
     #[inline]
-    fn gripper(&self, g: &mut GripperState, latest: &mut SimState, now: u64, ctl: &mut Controller) -> Option<Reply> {
-        let sub = self.gripper_sub.as_ref()?;
+    fn gripper(&self, g: &mut GripperState, now: u64, ctl: &mut Controller) {
+        use controller::GripperReport;
+        let Some(sub) = self.gripper_sub.as_ref() else { return };
         while let Ok(Some(s)) = sub.receive() {
             *g = *s;
         }
-        latest.finger_m = g.finger_m;
-        latest.finger_max_m = g.finger_max_m;
-        if g.seq == 0 {
-            return ctl.gripper_reports(ipc_schema::GRASP_UNKNOWN, Some("no state from the gripper driver yet"));
-        }
-        if now.saturating_sub(g.published_ns) > GRIPPER_TIMEOUT_NS {
-            return ctl.gripper_reports(
-                ipc_schema::GRASP_UNKNOWN,
-                Some("the gripper driver published nothing for 250 ms (it stopped or hangs)"),
-            );
-        }
-        ctl.gripper_reports(g.grasp, (g.fault != 0).then(|| g.fault_str()))
+        let report = if g.seq == 0 {
+            GripperReport::NotReady("no state from the gripper driver yet")
+        } else if now.saturating_sub(g.published_ns) > GRIPPER_TIMEOUT_NS {
+            GripperReport::Fault("the gripper driver published nothing for 250 ms (it stopped or hangs)")
+        } else if g.fault == 0 {
+            GripperReport::Ready { finger_m: g.finger_m }
+        } else if g.clears_itself != 0 {
+            GripperReport::NotReady(g.fault_str())
+        } else {
+            GripperReport::Fault(g.fault_str())
+        };
+        ctl.gripper_reports(g.grasp, report);
     }
 
     /// Wall mode: the command to the robot side; a robot side that is gone is counted, not fatal.
@@ -562,6 +567,14 @@ fn wall_loop(
         // the same state, as an idle sim-host sends, proves nothing).
         let fresh = ports.newest_state_or_none(&mut incoming, &mut stats)
             && (incoming.session != latest.session || incoming.seq > latest.seq);
+        // A gripper of its own, before anything uses the state: once it has acted on commands,
+        // its fingers are the state's (before that the runtime sends it no finger target).
+        ports.gripper(&mut gripper, woke, ctl);
+        if ctl.gripper_ready() {
+            for s in [&mut incoming, &mut latest] {
+                (s.finger_m, s.finger_max_m) = (gripper.finger_m, gripper.finger_max_m);
+            }
+        }
         if paced && fresh {
             // Paced: how long after the robot side published its state the tick starts on it.
             late = woke.saturating_sub(incoming.published_ns);
@@ -597,7 +610,6 @@ fn wall_loop(
             stats.robot_losses += 1;
             robot_seen_again = false;
         }
-        let stopped = ports.gripper(&mut gripper, &mut latest, woke, ctl);
         // Every command is checked against the limits, each against the one a tick before (not
         // on a tick whose command restarted at the measured state: a reset, a robot side that
         // came back or recovered).
@@ -612,7 +624,6 @@ fn wall_loop(
             (cmd, reply)
         };
         let (mut cmd, mut reply) = checked_tick(ctl, &mut stats);
-        reply = stopped.or(reply);
         if paced && fresh {
             // A robot cycle without a state (a lost packet, or one this loop was too late to
             // read) still moved the robot's own interpolation on: the command covers every

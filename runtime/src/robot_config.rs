@@ -105,8 +105,9 @@ pub enum CameraDriver {
     /// A UVC camera through V4L2, by device path (RGB only).
     Uvc { device: PathBuf },
     /// Frames from a file fed through librealsense's software device: the RealSense code path
-    /// without hardware (tests, offline checks).
-    Replay { file: PathBuf },
+    /// without hardware (tests, offline checks); `frames`: end the host after that many (a
+    /// camera that stops), None: loop for ever.
+    Replay { file: PathBuf, frames: Option<u32> },
 }
 
 impl CameraDevice {
@@ -120,8 +121,11 @@ impl CameraDevice {
             CameraDriver::Uvc { device } => {
                 a.extend(["--driver".into(), "uvc".into(), "--device".into(), device.display().to_string()])
             }
-            CameraDriver::Replay { file } => {
-                a.extend(["--driver".into(), "replay".into(), "--replay".into(), file.display().to_string()])
+            CameraDriver::Replay { file, frames } => {
+                a.extend(["--driver".into(), "replay".into(), "--replay".into(), file.display().to_string()]);
+                if let Some(n) = frames {
+                    a.extend(["--frames".into(), n.to_string()]);
+                }
             }
         }
         a.extend([
@@ -193,7 +197,7 @@ fn cameras(v: Option<&Value>, calibration: &CalibrationFiles) -> anyhow::Result<
             bail!("cameras: \"{name}\" is not a camera name (1 to {NAME_LEN} of A-Z a-z 0-9 _ -)");
         }
         let what = format!("cameras.{name}");
-        let c = table(v, &what, &["driver", "serial", "device", "file", "width", "height", "fps", "depth"])?;
+        let c = table(v, &what, &["driver", "serial", "device", "file", "frames", "width", "height", "fps", "depth"])?;
         let text = |key: &str| {
             c.get(key)
                 .and_then(Value::as_str)
@@ -222,15 +226,23 @@ fn cameras(v: Option<&Value>, calibration: &CalibrationFiles) -> anyhow::Result<
                 file: text("file")
                     .ok_or_else(|| anyhow::anyhow!("{what}.file must name a .npz of recorded frames"))?
                     .into(),
+                frames: match c.get("frames") {
+                    None => None,
+                    Some(v) => Some(v.as_u64().filter(|n| (1..=u64::from(u32::MAX)).contains(n)).ok_or_else(|| {
+                        anyhow::anyhow!("{what}.frames must be a whole number of frames, at least 1, got {v}")
+                    })? as u32),
+                },
             },
             other => bail!("{what}.driver must be \"realsense\", \"uvc\" or \"replay\", got {other:?}"),
         };
         let allowed: &[&str] = match driver {
             CameraDriver::Realsense { .. } => &["serial"],
             CameraDriver::Uvc { .. } => &["device"],
-            CameraDriver::Replay { .. } => &["file"],
+            CameraDriver::Replay { .. } => &["file", "frames"],
         };
-        if let Some(k) = ["serial", "device", "file"].iter().find(|k| c.contains_key(**k) && !allowed.contains(k)) {
+        if let Some(k) =
+            ["serial", "device", "file", "frames"].iter().find(|k| c.contains_key(**k) && !allowed.contains(k))
+        {
             bail!("{what}.{k} does not apply to its driver");
         }
         let whole = |key: &str, default: f64, lo: f64, hi: f64| -> anyhow::Result<u32> {
@@ -491,7 +503,7 @@ impl RobotConfig {
         let dir = path.parent().unwrap_or(Path::new("."));
         c.calibration = c.calibration.resolved(dir).with_context(|| format!("robot config {}", path.display()))?;
         for cam in &mut c.cameras {
-            if let CameraDriver::Replay { file } = &mut cam.driver {
+            if let CameraDriver::Replay { file, .. } = &mut cam.driver {
                 let joined = dir.join(&*file);
                 *file = std::path::absolute(&joined).unwrap_or(joined);
             }
@@ -568,6 +580,20 @@ mod tests {
             ["--camera", "wrist", "--driver", "realsense", "--serial", "123456789012"]
         );
         assert!(c.cameras[0].host_args().contains(&"--no-depth".to_string()));
+        let replay = RobotConfig::parse(
+            r#"{"profile": "simulation", "calibration": {"cameras": {"a": "a.json"}},
+                "cameras": {"a": {"driver": "replay", "file": "a.npz", "frames": 30}}}"#,
+        )
+        .unwrap();
+        assert!(replay.cameras[0].host_args().windows(2).any(|w| w == ["--frames", "30"]));
+        for (frames, want) in [("0", "at least 1"), ("1.5", "whole number"), ("\"x\"", "whole number")] {
+            let text = format!(
+                r#"{{"profile": "simulation", "calibration": {{"cameras": {{"a": "a.json"}}}},
+                    "cameras": {{"a": {{"driver": "replay", "file": "a.npz", "frames": {frames}}}}}}}"#
+            );
+            let e = format!("{:#}", RobotConfig::parse(&text).unwrap_err());
+            assert!(e.contains("cameras.a.frames") && e.contains(want), "{e}");
+        }
         let hand = RobotConfig::parse(r#"{"profile": "franka", "gripper": {"driver": "franka_hand"}}"#).unwrap();
         assert_eq!(hand.gripper, Gripper::FrankaHand);
     }

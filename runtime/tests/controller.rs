@@ -2,7 +2,7 @@
 
 use controllers::LimiterConfig;
 use ipc_schema::{ControlType, Request, RequestKind, SimState, Status, MAX_CHUNK, WAYPOINT_LEN};
-use runtime::controller::Controller;
+use runtime::controller::{Controller, GripperReport};
 
 const HOME: [f64; 7] = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785];
 
@@ -490,7 +490,8 @@ fn robot_reflexes_reply_after_the_recovery_and_a_failed_one_waits_for_each_clear
 }
 
 /// Ticks with a gripper of its own reporting each tick, as the wall loop does: `fault(tick)`
-/// gives its fault text (None: clear). Returns the first reply and the state's grasp then.
+/// gives its fault text (None: ready, its fingers where the state has them). Returns the first
+/// reply and its tick.
 fn gripper_ticks(
     ctl: &mut Controller,
     state: &mut SimState,
@@ -498,15 +499,84 @@ fn gripper_ticks(
     fault: impl Fn(u64) -> Option<&'static str>,
 ) -> Option<(ipc_schema::Reply, u64)> {
     for tick in 0..ticks {
-        let stopped = ctl.gripper_reports(ipc_schema::GRASP_HOLDING, fault(tick));
+        let report = match fault(tick) {
+            Some(t) => GripperReport::Fault(t),
+            None => GripperReport::Ready { finger_m: state.finger_m },
+        };
+        ctl.gripper_reports(ipc_schema::GRASP_HOLDING, report);
         let (cmd, reply) = ctl.tick(state);
         state.seq += 1;
         (state.q_rad, state.dq_rad_s) = (cmd.q_rad, cmd.dq_rad_s);
-        if let Some(r) = stopped.or(reply) {
+        if let Some(r) = reply {
             return Some((r, tick));
         }
     }
     None
+}
+
+/// A Robotiq that is still starting (no state from its driver, its port not there yet,
+/// activating) holds the arm and refuses chunks but latches nothing, even on the Franka
+/// profile: once it acts on commands, chunks run without an operator's clear. Until then the
+/// command carries no finger target, and then the gripper's own first reading (fingers half
+/// open, the robot side's fully open): nothing closes or opens the fingers by itself.
+#[test]
+fn a_gripper_still_starting_holds_the_arm_without_needing_an_operator() {
+    let mut ctl = franka(30.0, 80.0);
+    let mut state = SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, ..SimState::default() };
+    let starting = [
+        GripperReport::NotReady("no state from the gripper driver yet"),
+        GripperReport::Fault("serial port vanished (unplugged, or no such device): /dev/ttyUSB0"),
+        GripperReport::NotReady("activating the gripper (its fingers open and close once)"),
+    ];
+    for report in starting {
+        for _ in 0..50 {
+            ctl.gripper_reports(ipc_schema::GRASP_UNKNOWN, report);
+            let (cmd, reply) = ctl.tick(&state);
+            assert!(reply.is_none());
+            assert!(cmd.finger_m.is_nan(), "a finger target before the gripper's first reading: {}", cmd.finger_m);
+            state.seq += 1;
+        }
+        assert!(ctl.fault().is_none(), "latched while starting: {:?}", ctl.fault());
+        let (r, _) = ctl.request(&request(1, ControlType::Joint, &[joint_wp(HOME, -1.0)]), &state);
+        let r = r.expect("refused at once");
+        assert_eq!(r.status, Status::Rejected as u32, "{}", r.reason_str());
+        assert!(r.reason_str().contains("the gripper"), "{}", r.reason_str());
+    }
+    // Ready, fingers at 0.018 m (half open): that is the target, until a chunk says otherwise.
+    for _ in 0..50 {
+        ctl.gripper_reports(ipc_schema::GRASP_AT_TARGET, GripperReport::Ready { finger_m: 0.018 });
+        let (cmd, _) = ctl.tick(&state);
+        assert!((cmd.finger_m - 0.018).abs() < 1e-12, "the first target is not the reading: {}", cmd.finger_m);
+        state.seq += 1;
+    }
+    assert!(ctl.fault().is_none() && ctl.gripper_ready());
+    let mut target = HOME;
+    target[6] += 0.1;
+    let (r, _) = ctl.request(&request(2, ControlType::Joint, &[joint_wp(target, 1.0)]), &state);
+    assert!(r.is_none(), "refused: {}", r.map(|r| r.reason_str().to_string()).unwrap_or_default());
+    // The chunk's own goal goes out at once (fully closed), not a ramp towards it.
+    ctl.gripper_reports(ipc_schema::GRASP_MOVING, GripperReport::Ready { finger_m: 0.018 });
+    let (cmd, _) = ctl.tick(&state);
+    assert_eq!(cmd.finger_m, 0.0);
+    // The robot side restarting (lost, then back at rest) restarts the arm at its measured
+    // joints but keeps the gripper's goal: its measured opening as the target would loosen a grasp.
+    ctl.robot_lost(300.0);
+    let back = SimState { seq: state.seq + 1, session: 7, finger_m: 0.012, ..state };
+    let _ = ctl.robot_back(&back);
+    let (cmd, _) = ctl.tick(&back);
+    assert_eq!(cmd.finger_m, 0.0, "the robot side's return changed the gripper's target");
+    // Once it has been ready, the same kinds of report latch: a link lost now needs the operator.
+    ctl.gripper_reports(ipc_schema::GRASP_UNKNOWN, GripperReport::Fault("no answer from the gripper"));
+    assert!(ctl.fault().is_some_and(|f| f.contains("no answer")), "{:?}", ctl.fault());
+    // A minor fault (not ready, ends by itself) never latches.
+    let mut ctl = franka(30.0, 80.0);
+    ctl.gripper_reports(ipc_schema::GRASP_AT_TARGET, GripperReport::Ready { finger_m: 0.0 });
+    ctl.tick(&state);
+    ctl.gripper_reports(ipc_schema::GRASP_UNKNOWN, GripperReport::NotReady("Robotiq fault 0x08: too hot"));
+    assert!(ctl.fault().is_none());
+    assert_eq!(ctl.robot_state(&state, 1, 1).fault & 4, 4, "the arm holds while it lasts");
+    ctl.gripper_reports(ipc_schema::GRASP_AT_TARGET, GripperReport::Ready { finger_m: 0.0 });
+    assert_eq!(ctl.robot_state(&state, 2, 1).fault, 0);
 }
 
 #[test]
@@ -540,7 +610,7 @@ fn a_gripper_fault_stops_the_chunk_holds_the_arm_and_refuses_chunks_until_clear(
         let r = r.expect("refused at once");
         assert_ne!(r.status, Status::Accepted as u32);
         // The gripper clears; on the Franka profile the operator must clear too.
-        assert!(ctl.gripper_reports(ipc_schema::GRASP_AT_TARGET, None).is_none());
+        ctl.gripper_reports(ipc_schema::GRASP_AT_TARGET, GripperReport::Ready { finger_m: state.finger_m });
         if franka_profile {
             let (r, _) = ctl.request(&request(3, ControlType::Joint, &[joint_wp(HOME, -1.0)]), &state);
             assert_eq!(r.expect("refused").status, Status::OperatorRequired as u32);

@@ -9,15 +9,12 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use controllers::math;
-use ipc_schema::{CameraFrame, Pose, Qos, Services};
+use ipc_schema::{CameraFrame, FrameHeader, Pose, Qos, Services};
 use mujoco_rs::mujoco_c::{mj_camlight, mj_kinematics};
 use mujoco_rs::prelude::*;
 use mujoco_rs::renderer::MjRenderer;
 
 use crate::scene::CameraSpec;
-
-const MAX_PIXELS: usize = ipc_schema::MAX_IMAGE_WIDTH * ipc_schema::MAX_IMAGE_HEIGHT;
-const MAX_RGB: usize = MAX_PIXELS * 3;
 
 /// What physics last handed over.
 #[derive(Debug, Default, Clone)]
@@ -177,37 +174,23 @@ pub fn run(
             let depth = if spec.depth { depth } else { None };
             frame_seq += 1;
             let mut sample = publisher.loan_uninit()?;
-            let p = sample.payload_mut().as_mut_ptr();
-            let n = (spec.width * spec.height) as usize;
-            // SAFETY: p points at a CameraFrame-sized sample we own. Every header field is written
-            // below and the used part of `rgb` and `depth_m`; the rest of the pixel buffers is
-            // zeroed so every byte is initialised before assume_init.
-            let sample = unsafe {
-                (*p).seq = frame_seq;
-                (*p).sim_time_s = snap.sim_time_s;
-                (*p).state_seq = snap.state_seq;
-                (*p).rendered_ns = ipc_schema::monotonic_ns();
-                (*p).width = spec.width;
-                (*p).height = spec.height;
-                (*p).has_depth = u32::from(depth.is_some());
-                (*p).reset_id = snap.reset_id as u32;
-                (*p).fx = fx;
-                (*p).fy = fy;
-                (*p).cx = cx;
-                (*p).cy = cy;
-                (*p).base_from_camera = Pose { position_m: bp, quat_xyzw: bq };
-                let rgb_dst = std::ptr::addr_of_mut!((*p).rgb).cast::<u8>();
-                let used = (3 * n).min(rgb.len());
-                std::ptr::copy_nonoverlapping(rgb.as_ptr(), rgb_dst, used);
-                std::ptr::write_bytes(rgb_dst.add(used), 0, MAX_RGB - used);
-                let depth_dst = std::ptr::addr_of_mut!((*p).depth_m).cast::<f32>();
-                let used = depth.map(|d| n.min(d.len())).unwrap_or(0);
-                if let Some(d) = depth {
-                    std::ptr::copy_nonoverlapping(d.as_ptr(), depth_dst, used);
-                }
-                std::ptr::write_bytes(depth_dst.add(used), 0, MAX_PIXELS - used);
-                sample.assume_init()
+            let header = FrameHeader {
+                seq: frame_seq,
+                sim_time_s: snap.sim_time_s,
+                state_seq: snap.state_seq,
+                rendered_ns: ipc_schema::monotonic_ns(),
+                width: spec.width,
+                height: spec.height,
+                reset_id: snap.reset_id as u32,
+                fx,
+                fy,
+                cx,
+                cy,
+                base_from_camera: Pose { position_m: bp, quat_xyzw: bq },
             };
+            CameraFrame::fill(sample.payload_mut(), &header, rgb, depth);
+            // SAFETY: `fill` wrote every byte of the sample.
+            let sample = unsafe { sample.assume_init() };
             sample.send()?;
         }
         let _ = wake.notify();

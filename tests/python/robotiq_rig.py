@@ -1,4 +1,4 @@
-"""A Robotiq 2F-85 on a serial line without hardware, for tests and `bench/py/robotiq_bench.py`.
+"""A Robotiq 2F-85 on a serial line without hardware, for tests and `bench/py/rig_bench.py`.
 
 A pseudo-terminal pair made by socat is the serial line: `rig/py/robotiq_sim.py` (OUR gripper
 simulator, written from the published register map on pymodbus's RTU server) serves one end,
@@ -37,10 +37,14 @@ class Rig:
     """socat's pty pair, the gripper simulator on one end, and an instance whose r2g-robotiq
     drives the other end."""
 
-    def __init__(self, tmp: Path, name: str, activation_s: float = 0.3, extra_env: dict | None = None) -> None:
+    def __init__(self, tmp: Path, name: str, activation_s: float = 0.3, extra_env: dict | None = None,
+                 position: int = 0, profile: str = "simulation") -> None:
         if shutil.which("socat") is None:
             raise RuntimeError("socat is missing: scripts/install-deps.sh installs it (make test does)")
         self.tmp, self.name = tmp, name
+        self.position, self.profile = position, profile
+        # r2g-robotiq's figures, kept current while it runs (R2G_ROBOTIQ_STATS_OUT).
+        self.stats_path = tmp / "robotiq-stats.json"
         self.socat = self.sim = self.up = None
         self.sim_log = open(tmp / "robotiq-sim.log", "w")
         self.up_log = open(tmp / "r2g-up.log", "w")
@@ -56,12 +60,12 @@ class Rig:
         self.start_line()
         self.start_gripper()
         config = {
-            "profile": "simulation",
+            "profile": self.profile,
             "gripper": {"driver": "robotiq_2f85", "port": str(self.driver_end), "force": 100},
         }
         self.config = self.tmp / "robot.json"
         self.config.write_text(json.dumps(config))
-        env = dict(os.environ, **extra_env)
+        env = dict(os.environ, R2G_ROBOTIQ_STATS_OUT=str(self.stats_path), **extra_env)
         self.up = subprocess.Popen(
             [str(R2G), "up", "pick_block_plate", "--instance", self.name, "--mode", "wall", "--render-hz", "0",
              "--robot-config", str(self.config)],
@@ -84,7 +88,8 @@ class Rig:
     def start_gripper(self) -> None:
         """The simulated gripper, powered up (not activated) on the gripper's end of the line."""
         self.sim = subprocess.Popen(
-            [str(PYTHON), str(SIM), "--port", str(self.gripper_end), "--activation-s", str(self.activation_s)],
+            [str(PYTHON), str(SIM), "--port", str(self.gripper_end), "--activation-s", str(self.activation_s),
+             "--position", str(self.position)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.sim_log, text=True,
         )
         line = self.sim.stdout.readline()
@@ -102,12 +107,21 @@ class Rig:
         stop(self.socat)
         self.socat = None
 
-    def control(self, **msg) -> None:
-        """One command to the simulator (object_at, fault, corrupt_crc, silent)."""
+    def control(self, **msg) -> dict:
+        """One command to the simulator (object_at, fault, kflt, corrupt_crc, silent; none: just
+        ask); its reply: where the fingers are (`position`, counts) and `activations`."""
         self.sim.stdin.write(json.dumps(msg) + "\n")
         self.sim.stdin.flush()
         reply = json.loads(self.sim.stdout.readline())
         assert reply.get("ok"), f"simulator refused {msg}: {reply}"
+        return reply
+
+    def stats(self) -> dict:
+        """r2g-robotiq's figures as it last wrote them ({} before it wrote any)."""
+        try:
+            return json.loads(self.stats_path.read_text())
+        except (FileNotFoundError, ValueError):
+            return {}
 
     def log(self) -> str:
         self.up_log.flush()
@@ -148,4 +162,4 @@ def gripper_move(robo, closed: float) -> tuple[int, float, dict]:
 
 
 if __name__ == "__main__":
-    sys.exit("a helper module: see tests/python/test_robotiq.py and bench/py/robotiq_bench.py")
+    sys.exit("a helper module: see tests/python/test_robotiq.py and bench/py/rig_bench.py")

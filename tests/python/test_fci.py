@@ -348,3 +348,16 @@ def test_a_missing_state_stream_fails_the_chunk_and_the_arm_holds(tmp_path: Path
             assert 0 < result["fb"]["executed"] < 16, result
     finally:
         peer.stop()
+
+
+def test_a_franka_hand_is_refused_when_the_config_names_a_robotiq(tmp_path: Path) -> None:
+    """--gripper (the Franka Hand) with a robot config whose gripper is a Robotiq 2F-85: two
+    drivers for one gripper; refused before any connection."""
+    cfg = contract.write_config(tmp_path, dict(CONFIG, gripper={"driver": "robotiq_2f85", "port": "/dev/ttyUSB9"}))
+    out = subprocess.run(
+        [str(R2G.parent / "r2g-fci"), str(ROOT / f"gyms/{GYM}/scene.toml"), "--instance", f"py{os.getpid()}rq",
+         "--robot", "127.0.0.1:1", "--robot-config", cfg, "--gripper"],
+        capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
+    )
+    assert out.returncode == 1 and "panicked" not in out.stderr, out.stderr[-2000:]
+    assert "Robotiq 2F-85 on /dev/ttyUSB9" in out.stderr and "--gripper" in out.stderr, out.stderr[-2000:]

@@ -5,7 +5,6 @@ the same frames on r2g-robotiq's side, so a misreading of the map cannot hide on
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -14,9 +13,10 @@ from typing import Iterator
 import pytest
 import serial
 
+from conftest import need_program
 from robotiq_rig import PYTHON, SIM, stop
 
-pytestmark = pytest.mark.skipif(shutil.which("socat") is None, reason="socat is missing (make test installs it)")
+need_program("socat", "socat is missing (scripts/install-deps.sh installs it; make test does)")
 
 
 def crc16(b: bytes) -> bytes:
@@ -84,7 +84,9 @@ def test_the_manuals_worked_examples_byte_for_byte(line: Line) -> None:
     moving = line.ask(STATUS3, 11)
     assert moving[:4] == bytes.fromhex("09 03 06 39") and moving[6] == 0xFF, moving.hex(" ")
     assert crc16(moving[:-2]) == moving[-2:]
-    time.sleep(1.5)
+    for _ in range(5):  # polled, as a driver does (1 s without a request is fault 0x09)
+        time.sleep(0.3)
+        line.ask(STATUS3, 11)
     assert line.ask(STATUS3, 11) == bytes.fromhex("09 03 06 B9 00 00 FF BD 00 1D 7C"), "stopped on the object"
     assert line.ask("09 10 03 E8 00 03 06 09 00 00 00 FF FF 72 19", 8) == WRITE_OK
 
@@ -121,3 +123,27 @@ def test_errors_follow_the_register_map(line: Line) -> None:
     line.control(silent=False)
     good = line.ask(STATUS3, 11)
     assert crc16(good[:-2]) == good[-2:]
+
+
+def test_minor_faults_end_by_themselves_major_ones_need_a_reset(line: Line) -> None:
+    """The manual's classes: 0x08 and 0x09 are minor (no reset), 0x0A-0x0F and kFLT major."""
+    line.ask("09 10 03 E8 00 03 06 01 00 00 00 00 00 72 E1", 8)
+    time.sleep(0.5)
+    assert line.ask(STATUS3, 11)[3] & 0x31 == 0x31, "activated"
+    # Too hot: reported while it lasts, gone without a reset.
+    line.control(fault=0x08)
+    assert line.ask(STATUS3, 11)[5] == 0x08
+    line.control(fault=0)
+    assert line.ask(STATUS3, 11)[5] == 0x00
+    # No request for 1 s while activated: 0x09 in the next answer, gone with the one after.
+    time.sleep(1.1)
+    assert line.ask(STATUS3, 11)[5] == 0x09
+    assert line.ask(STATUS3, 11)[5] == 0x00
+    # A controller fault: kFLT in the high nibble; only a reset (rACT 0, then 1) ends it.
+    line.control(kflt=3)
+    assert line.ask(STATUS3, 11)[5] == 0x30
+    line.control(fault=0)
+    assert line.ask(STATUS3, 11)[5] == 0x30
+    line.ask("09 10 03 E8 00 03 06 00 00 00 00 00 00 73 30", 8)
+    line.ask("09 10 03 E8 00 03 06 01 00 00 00 00 00 72 E1", 8)
+    assert line.ask(STATUS3, 11)[5] == 0x00

@@ -271,9 +271,10 @@ impl Agent {
             .subscriber_builder()
             .create()
             .expect("subscriber");
-        let state = ipc_schema::open_or_create_pubsub::<RobotState>(&node, &s.robot_state(), Qos::STREAM)
+        let state = ipc_schema::open_or_create_pubsub::<RobotState>(&node, &s.robot_state(), Qos::ROBOT_STATE)
             .expect("state service")
             .subscriber_builder()
+            .buffer_size(1)
             .create()
             .expect("subscriber");
         let info = ipc_schema::open_or_create_pubsub::<RuntimeInfo>(&node, &s.runtime_info(), Qos::STREAM)
