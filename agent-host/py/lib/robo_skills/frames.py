@@ -39,7 +39,9 @@ from robo_perception.transforms import (axis_angle_to_matrix, matrix_to_axis_ang
 
 FEATURES = ("centre", "top_face", "support_plane", "major_axis")
 SQUARE_RATIO = 0.85  # short / long side at or above this: a quarter turn looks the same
-ROUND_RATIO = 0.95   # ... and at or above this (and no visible corners): treated as round
+# Shapes perception calls round: any turn about the vertical looks the same. A square box is
+# not round however equal its sides: its faces settle the frame (a grasp across them).
+ROUND_SHAPES = ("disc", "cylinder", "bowl", "plate", "ball", "sphere", "cup", "mug")
 
 
 class AnchorError(ValueError):
@@ -64,9 +66,8 @@ class Anchor:
         box = cluster.obb
         ext = np.asarray(box.extents, dtype=float)
         ratio = float(ext[1] / ext[0]) if ext[0] > 1e-9 else 1.0
-        round_shape = getattr(cluster, "shape_name", "") in ("disc", "cylinder", "bowl", "plate", "ball", "cup", "mug")
-        symmetry = "round" if (ratio >= ROUND_RATIO or (round_shape and ratio >= SQUARE_RATIO)) else (
-            "square" if ratio >= SQUARE_RATIO else "box")
+        round_shape = getattr(cluster, "shape_name", "") in ROUND_SHAPES
+        symmetry = "round" if (round_shape and ratio >= SQUARE_RATIO) else ("square" if ratio >= SQUARE_RATIO else "box")
         return Anchor(np.asarray(box.center, dtype=float), np.asarray(box.axes, dtype=float), ext,
                       np.asarray(plane_normal, dtype=float), symmetry, name)
 
