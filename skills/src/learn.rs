@@ -284,7 +284,8 @@ pub fn protocol(
         })
     };
     let summary = json!({
-        "gym": gym, "episodes": rows.len(), "library": learn_opts.library,
+        "gym": gym, "episodes": rows.len(),
+        "library": if backend.is_some() { json!(dir.join("seed-NNN/library")) } else { json!(learn_opts.library) },
         "label": if scripted { "mechanics only: the scripted endpoint replays recorded conversations (synthetic, written by us), not a model" } else { "model" },
         "without_skills": arm("without"), "with_skills": arm("with"),
         "per_seed": rows, "run_dir": dir,
