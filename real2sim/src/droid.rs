@@ -130,8 +130,9 @@ pub fn read(
         if h5.has(GRIP_CMD) { (GRIP_CMD, h5.column(GRIP_CMD, Some(n))?) } else { (GRIP, h5.column(GRIP, Some(n))?) };
     let secs = h5.column(SECS, Some(n))?;
     let nanos = h5.column(NANOS, Some(n))?;
-    let stamps: Vec<f64> = secs.iter().zip(&nanos).map(|(s, ns)| s + 1e-9 * ns).collect();
-    let t0 = stamps[0];
+    // Seconds since the first frame, differenced before adding so no precision is lost.
+    let stamps: Vec<f64> = secs.iter().zip(&nanos).map(|(s, ns)| (s - secs[0]) + 1e-9 * (ns - nanos[0])).collect();
+    let t0 = 0.0;
     let mut t_s = Vec::with_capacity(n);
     for (k, &s) in stamps.iter().enumerate() {
         if k > 0 && s <= stamps[k - 1] {

@@ -67,11 +67,7 @@ fn iso_rows(rows: &[f64]) -> Option<Isometry3<f64>> {
 pub fn read(path: &Path, side: &str, min_confidence: f64) -> Result<HandInWorld> {
     let h5 = H5::read(path, &["transforms/", "confidences/", "camera/"])?;
     let file = h5.file.clone();
-    let k = h5.rows("camera/intrinsic", &[3, 3], None)?;
-    let k = &k[..];
-    if k.len() != 3 {
-        return Err(Error::input(&file, "camera/intrinsic", None, format!("shape [{}, 3], expected [3, 3]", k.len())));
-    }
+    let k = h5.rows("camera/intrinsic", &[3], Some(3))?;
     let (fx, fy, cx, cy) = (k[0][0], k[1][1], k[0][2], k[1][2]);
     if !(fx > 0.0 && fy > 0.0 && cx > 0.0 && cy > 0.0) {
         return Err(Error::input(
@@ -101,9 +97,14 @@ pub fn read(path: &Path, side: &str, min_confidence: f64) -> Result<HandInWorld>
     };
     let mut best: Option<HandInWorld> = None;
     let mut best_score = -1.0;
-    let mut last_err = None;
+    let mut first_unseen = None;
     for s in sides {
         match read_side(&h5, s, n, min_confidence) {
+            // A hand out of view: try the other one. Anything else is the file's fault.
+            Err(Side::Unseen(e)) => {
+                first_unseen.get_or_insert(e);
+            }
+            Err(Side::Bad(e)) => return Err(e),
             Ok(hand) => {
                 let seen = hand.confidence.iter().filter(|c| **c >= min_confidence).count() as f64;
                 let apertures: Vec<f64> = hand
@@ -121,10 +122,9 @@ pub fn read(path: &Path, side: &str, min_confidence: f64) -> Result<HandInWorld>
                     best = Some(HandInWorld { intrinsics, world_from_optical: world_from_optical.clone(), ..hand });
                 }
             }
-            Err(e) => last_err = Some(e),
         }
     }
-    let mut hand = match (best, last_err) {
+    let mut hand = match (best, first_unseen) {
         (Some(h), _) => h,
         (None, Some(e)) => return Err(e),
         (None, None) => return Err(Error::input(&file, "transforms", None, "no hand found")),
@@ -137,7 +137,19 @@ pub fn read(path: &Path, side: &str, min_confidence: f64) -> Result<HandInWorld>
     Ok(hand)
 }
 
-fn read_side(h5: &H5, side: &str, n: usize, min_confidence: f64) -> Result<HandInWorld> {
+/// Why a hand could not be read: out of view, or a fault of the file.
+enum Side {
+    Unseen(Error),
+    Bad(Error),
+}
+
+impl From<Error> for Side {
+    fn from(e: Error) -> Self {
+        Side::Bad(e)
+    }
+}
+
+fn read_side(h5: &H5, side: &str, n: usize, min_confidence: f64) -> std::result::Result<HandInWorld, Side> {
     let file = &h5.file;
     let joints = pinch_joints(side);
     let mut points = vec![[[f64::NAN; 3]; 3]; n];
@@ -158,12 +170,12 @@ fn read_side(h5: &H5, side: &str, n: usize, min_confidence: f64) -> Result<HandI
             if rows.iter().all(|v| v.is_finite()) {
                 points[f][j] = [rows[3], rows[7], rows[11]];
             } else if c >= min_confidence {
-                return Err(Error::input(
+                return Err(Side::Bad(Error::input(
                     file,
                     &tf_field,
                     Some(f),
                     format!("NaN or infinite pose with confidence {c:.2}"),
-                ));
+                )));
             } else {
                 // Untracked: the frame is dropped below.
                 confidence[f] = 0.0;
@@ -174,7 +186,7 @@ fn read_side(h5: &H5, side: &str, n: usize, min_confidence: f64) -> Result<HandI
     let seen = confidence.iter().filter(|c| **c >= min_confidence).count();
     if seen < 5.max(n / 20) {
         let field = format!("confidences/{}", joints[weakest.iter().copied().max().unwrap_or(0)]);
-        return Err(Error::input(
+        return Err(Side::Unseen(Error::input(
             file,
             &field,
             None,
@@ -182,7 +194,7 @@ fn read_side(h5: &H5, side: &str, n: usize, min_confidence: f64) -> Result<HandI
                 "the {side} hand is never seen: {seen} of {n} frames have all of {} at confidence >= {min_confidence}",
                 joints.join(", ")
             ),
-        ));
+        )));
     }
     Ok(HandInWorld {
         file: file.clone(),

@@ -90,6 +90,23 @@ pub fn entity_centre(scene: &Scene, name: &str) -> Option<[f64; 3]> {
     Some([p.x, p.y, p.z])
 }
 
+/// Height of the highest point of an object's colliding parts at its start pose, m (world).
+pub fn entity_top(scene: &Scene, name: &str) -> Option<f64> {
+    let o = scene.objects.iter().find(|o| o.name == name)?;
+    let (lo, hi) = object_bounds(o)?;
+    let pose = pose_wxyz(o.position_m, o.quat_wxyz);
+    (0..8)
+        .map(|c| {
+            let p = Point3::new(
+                if c & 1 == 0 { lo[0] } else { hi[0] },
+                if c & 2 == 0 { lo[1] } else { hi[1] },
+                if c & 4 == 0 { lo[2] } else { hi[2] },
+            );
+            (pose * p).z
+        })
+        .reduce(f64::max)
+}
+
 fn mid(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     std::array::from_fn(|k| 0.5 * (a[k] + b[k]))
 }

@@ -82,12 +82,12 @@ impl H5 {
             let parent = field.rsplit_once('/').map(|(p, _)| p).unwrap_or("");
             let near: Vec<&str> =
                 self.datasets.keys().filter(|k| k.starts_with(parent)).map(String::as_str).take(8).collect();
-            Error::input(
-                &self.file,
-                field,
-                None,
-                format!("missing (found{}: {})", if parent.is_empty() { "" } else { " beside it" }, near.join(", ")),
-            )
+            let why = if near.is_empty() {
+                format!("missing (nothing else under '{parent}/' either)")
+            } else {
+                format!("missing (found beside it: {})", near.join(", "))
+            };
+            Error::input(&self.file, field, None, why)
         })
     }
 

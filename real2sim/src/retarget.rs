@@ -8,13 +8,15 @@
 //!   solution is nearer the scene's start joints).
 //! - **Aperture** |I − T| with hysteresis: closed below `close_fraction` of the way from the
 //!   episode's small (10th percentile) to its large (90th percentile) aperture, open again above
-//!   `open_fraction`; a state lasting less than `min_state_s` is ignored. Under 1 cm between
-//!   the two: the hand never grasps.
+//!   `open_fraction`; a state lasting less than `min_state_s` is ignored; each switch then moves
+//!   back to where the (smoothed) aperture began to fall or rise. Under 1 cm between the two:
+//!   the hand never grasps.
 //! - Frames whose three points are not all at `min_confidence` are dropped, never interpolated
 //!   from; the resampling interpolates between the kept frames around them.
 //! - **Registration** (ARKit world → robot base): given (`--registration`, a 4×4), or estimated:
 //!   gravity from ARKit's y-up world; heading and position by fitting the pinch point at the
-//!   first grasp onset to the centre of the task's object (`gym::roles`) and the pinch point at
+//!   first grasp onset to the centre of the task's object (`gym::roles`; at 1.5 cm below its
+//!   top, or its middle when lower) and the pinch point at
 //!   the following release to the centre of its target (cavity centre when it has one), in the
 //!   horizontal plane; height from the grasp point. It needs a grasp and a release; a residual
 //!   over 5 cm means the demonstration does not fit the scene and is refused.
@@ -41,11 +43,19 @@ pub struct HandParams {
     pub min_state_s: f64,
     pub close_fraction: f64,
     pub open_fraction: f64,
+    /// Pinch poses are averaged over this much time either side (within one gripper state).
+    pub smooth_half_window_s: f64,
 }
 
 impl Default for HandParams {
     fn default() -> Self {
-        Self { min_confidence: 0.5, min_state_s: 0.15, close_fraction: 0.35, open_fraction: 0.65 }
+        Self {
+            min_confidence: 0.5,
+            min_state_s: 0.15,
+            close_fraction: 0.35,
+            open_fraction: 0.65,
+            smooth_half_window_s: 0.1,
+        }
     }
 }
 
@@ -143,9 +153,39 @@ pub fn pinches(hand: &HandInWorld, p: HandParams, rate_hz: f64) -> Result<Pinche
         // Closedness rises as the aperture falls: hysteresis on the negated aperture.
         let neg: Vec<f64> = aperture_m.iter().map(|a| -a).collect();
         let raw = resample::hysteresis(&neg, -close, -open);
-        (close, open, resample::debounce(&raw, &t_s, p.min_state_s))
+        let mut closed = resample::debounce(&raw, &t_s, p.min_state_s);
+        onsets(&mut closed, &aperture_m, &t_s, p.smooth_half_window_s);
+        (close, open, closed)
     };
     Ok(Pinches { frames, t_s, world_from_pinch, aperture_m, closed, close_below_m, open_above_m })
+}
+
+/// Moves each switch back to where the hand began to close (or open): the start of the run
+/// over which the smoothed aperture kept falling (rising) by more than 1 mm a frame. The
+/// thresholds say that the hand closed; this says when it started to.
+fn onsets(closed: &mut [bool], aperture_m: &[f64], t_s: &[f64], half_window_s: f64) {
+    let n = closed.len();
+    let smooth: Vec<f64> = (0..n)
+        .map(|k| {
+            let near: Vec<f64> =
+                (0..n).filter(|&j| (t_s[j] - t_s[k]).abs() <= half_window_s).map(|j| aperture_m[j]).collect();
+            near.iter().sum::<f64>() / near.len() as f64
+        })
+        .collect();
+    let mut last = 0;
+    for k in 1..n {
+        if closed[k] == closed[k - 1] {
+            continue;
+        }
+        let sign = if closed[k] { 1.0 } else { -1.0 };
+        let mut j = k;
+        while j > last + 1 && sign * (smooth[j - 1] - smooth[j]) > 1e-3 {
+            j -= 1;
+        }
+        let state = closed[k];
+        closed[j..k].iter_mut().for_each(|c| *c = state);
+        last = k;
+    }
 }
 
 /// Estimates base-from-world (see the module notes) from the first grasp and release.
@@ -170,7 +210,11 @@ pub fn estimate_registration(
                 .into(),
         ));
     };
-    let q_grasp = crate::gym::entity_centre(scene, &object).unwrap_or_default();
+    // Fingertips close 1.5 cm below the object's top, or at its middle when it is lower.
+    let mut q_grasp = crate::gym::entity_centre(scene, &object).unwrap_or_default();
+    if let Some(top) = crate::gym::entity_top(scene, &object) {
+        q_grasp[2] = q_grasp[2].max(top - 0.015);
+    }
     let q_release = crate::gym::entity_centre(scene, &target).unwrap_or_default();
     let g = egodex::z_up_from_arkit();
     let p_grasp = g * Point3::from(pinches.world_from_pinch[on].translation.vector);
@@ -215,6 +259,28 @@ pub fn estimate_registration(
         residual_m: residual,
     };
     Ok((base_from_world, reg))
+}
+
+/// Averages each pose with those within `half_window_s` of it that share its gripper state
+/// (tracking noise would otherwise become joint jitter, which the runtime can only follow by
+/// slowing down); positions by their mean, orientations by the normalised sum of quaternions
+/// turned into one hemisphere.
+pub fn smooth(poses: &[Isometry3<f64>], t_s: &[f64], state: &[bool], half_window_s: f64) -> Vec<Isometry3<f64>> {
+    (0..poses.len())
+        .map(|k| {
+            let near = (0..poses.len()).filter(|&j| (t_s[j] - t_s[k]).abs() <= half_window_s && state[j] == state[k]);
+            let (mut p, mut q, mut n) = (Vector3::zeros(), nalgebra::Vector4::zeros(), 0.0);
+            let qk = poses[k].rotation.coords;
+            for j in near {
+                p += poses[j].translation.vector;
+                let c = poses[j].rotation.coords;
+                q += if c.dot(&qk) < 0.0 { -c } else { c };
+                n += 1.0;
+            }
+            let rot = UnitQuaternion::from_quaternion(nalgebra::Quaternion::from(q / n));
+            Isometry3::from_parts(Translation3::from(p / n), rot)
+        })
+        .collect()
 }
 
 /// Solves TCP poses (robot base frame) into joint rows, each seeded with the one before; the
@@ -344,6 +410,7 @@ pub fn retarget(
             tcp[k] = tcp[k] * Isometry3::from_parts(Translation3::identity(), flip);
         }
     }
+    let tcp = smooth(&tcp, &t_s, &pin.closed, p.smooth_half_window_s);
     // Resample onto the demonstration rate.
     let plan = resample::plan(&t_s, &pin.closed, hz);
     let poses: Vec<Isometry3<f64>> = plan
