@@ -37,6 +37,12 @@ pub struct EpisodeOpts {
     pub wall_s: f64,
     /// Folder of append-only memory records (default: robot-skill/memory).
     pub memory: Option<PathBuf>,
+    /// Augmentation seed of the gym (0: as written); a batch gives episode i `seed + i` when
+    /// it is not 0.
+    pub seed: u64,
+    /// Placement perturbation drawn from the seed, as r2g-sim's `--perturb` takes it
+    /// (sim_host::placement; `r2g` parses it before it gets here).
+    pub perturb: Option<String>,
 }
 
 /// The repo's scripted LLM server, replaying a recorded conversation; stopped on drop.
@@ -129,7 +135,14 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
         mode: if o.wall { Mode::Wall } else { Mode::Lockstep },
         render_hz: 10.0,
         control_args: Vec::new(),
-        sim_args: vec!["--trace-dir".into(), trace_dir.display().to_string()],
+        sim_args: {
+            let mut a =
+                vec!["--trace-dir".into(), trace_dir.display().to_string(), "--seed".into(), o.seed.to_string()];
+            if let Some(p) = &o.perturb {
+                a.extend(["--perturb".into(), p.clone()]);
+            }
+            a
+        },
         robot_config: Some(o.robot_config.clone().unwrap_or_else(launch::default_robot_config)),
         ready_timeout: Duration::from_secs(60),
     };
@@ -175,7 +188,8 @@ pub fn batch(
     let dir = o.out.clone().unwrap_or_else(|| root.join("runs").join("batches").join(format!("{}-{stamp}", o.gym)));
     let mut rows = Vec::new();
     for i in 0..episodes {
-        let e = EpisodeOpts { out: Some(dir.join(format!("episode-{i:03}"))), ..o.clone() };
+        let seed = if o.seed == 0 { 0 } else { o.seed + u64::from(i) };
+        let e = EpisodeOpts { out: Some(dir.join(format!("episode-{i:03}"))), seed, ..o.clone() };
         let r = episode(&e);
         on_episode(i, &r);
         match r {

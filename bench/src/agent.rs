@@ -31,6 +31,8 @@ pub fn run(episodes: u32) -> anyhow::Result<Value> {
             robot_config: None,
             wall_s: 120.0,
             memory: Some(dir.join("memory")),
+            seed: 0,
+            perturb: None,
         };
         let r = session::episode(&o)?;
         if !r.success {

@@ -69,6 +69,8 @@ enum Cmd {
         /// Also drive the Franka Hand of that arm (with --fci).
         #[arg(long, requires = "fci")]
         fci_gripper: bool,
+        #[command(flatten)]
+        placement: PlacementArgs,
     },
     /// Run one program in the sandbox against a live gym (`r2g up ... --instance NAME`) and
     /// print a JSON result: stdout, stderr, exit, violation, control steps, what was enforced.
@@ -131,9 +133,8 @@ enum Cmd {
     Replay {
         /// Gym name, gym folder, or scene file.
         gym: String,
-        /// Augmentation seed (0: the scene as written).
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
+        #[command(flatten)]
+        placement: PlacementArgs,
         /// Post no actions at all: the evaluator must then report failure.
         #[arg(long)]
         do_nothing: bool,
@@ -224,6 +225,40 @@ enum ImportCmd {
     },
 }
 
+/// Where the objects start: `--seed` and `--perturb` (sim_host::placement).
+#[derive(clap::Args, Debug, Clone, Default)]
+struct PlacementArgs {
+    /// Augmentation seed (0: the scene as written; otherwise each object moves by its own
+    /// jitter, and the objects --perturb names by its ranges). `r2g batch` gives episode i the
+    /// seed SEED + i.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Move free objects further, drawn from the seed and clear of everything else:
+    /// `xy=0.05,yaw=30[,objects=block+plate]` (up to ±5 cm in x and y, ±30 degrees of yaw).
+    #[arg(long, value_name = "SPEC")]
+    perturb: Option<sim_host::placement::Perturbation>,
+}
+
+impl PlacementArgs {
+    fn check(&self) -> anyhow::Result<()> {
+        if self.perturb.is_some() && self.seed == 0 {
+            anyhow::bail!(
+                "--perturb draws the placement from the seed: give --seed N (N > 0); seed 0 is the scene as written"
+            );
+        }
+        Ok(())
+    }
+
+    /// The arguments r2g-sim takes for this placement.
+    fn sim_args(&self) -> Vec<String> {
+        let mut v = vec!["--seed".to_string(), self.seed.to_string()];
+        if let Some(p) = &self.perturb {
+            v.extend(["--perturb".to_string(), p.to_string()]);
+        }
+        v
+    }
+}
+
 /// Options of `r2g episode` and `r2g batch`.
 #[derive(clap::Args, Debug, Clone)]
 struct EpisodeArgs {
@@ -255,11 +290,16 @@ struct EpisodeArgs {
     /// Folder of append-only memory records (default: robot-skill/memory).
     #[arg(long)]
     memory: Option<std::path::PathBuf>,
+    #[command(flatten)]
+    placement: PlacementArgs,
 }
 
-impl From<EpisodeArgs> for session::EpisodeOpts {
-    fn from(a: EpisodeArgs) -> Self {
-        Self {
+impl TryFrom<EpisodeArgs> for session::EpisodeOpts {
+    type Error = anyhow::Error;
+
+    fn try_from(a: EpisodeArgs) -> anyhow::Result<Self> {
+        a.placement.check()?;
+        Ok(Self {
             gym: a.gym,
             llm: a.llm,
             provider: a.provider,
@@ -270,7 +310,9 @@ impl From<EpisodeArgs> for session::EpisodeOpts {
             robot_config: a.robot_config,
             wall_s: a.wall_s,
             memory: a.memory,
-        }
+            seed: a.placement.seed,
+            perturb: a.placement.perturb.map(|p| p.to_string()),
+        })
     }
 }
 
@@ -455,7 +497,18 @@ enum BenchCmd {
 fn main() {
     let cli = Cli::parse();
     let r = match cli.command {
-        Cmd::Up { gym, mode, instance, render_hz, trace_dir, robot_config, operator_group, fci, fci_gripper } => {
+        Cmd::Up {
+            gym,
+            mode,
+            instance,
+            render_hz,
+            trace_dir,
+            robot_config,
+            operator_group,
+            fci,
+            fci_gripper,
+            placement,
+        } => {
             // Only `up` waits for the stop signals to shut its instance down in order; every other
             // command ends at once on them, and its instances' processes follow (die_with_parent).
             process::install_stop_signals();
@@ -468,26 +521,28 @@ fn main() {
                 },
                 None => launch::RobotSide::Sim,
             };
-            up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc, control_args, &side)
+            up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc, control_args, &side, &placement)
         }
         Cmd::Clear { instance } => runtime::operator::clear_fault(&instance).map(|(_cleared, reason)| {
             println!("{reason}");
             0
         }),
-        Cmd::Episode { opts } => session::episode(&opts.into()).and_then(|r| {
+        Cmd::Episode { opts } => opts.try_into().and_then(|o| session::episode(&o)).and_then(|r| {
             println!("{}", serde_json::to_string(&r)?);
             Ok(if r.success { 0 } else { 1 })
         }),
-        Cmd::Batch { episodes, opts } => session::batch(&opts.into(), episodes, |i, r| match r {
-            Ok(r) => eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses),
-            Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),
-        })
-        .map(|v| {
-            println!("{v}");
-            // Failed tasks are results; a batch none of whose episodes could run at all (the
-            // endpoint or the gym failing every time) is a failure of the batch.
-            let ran_none = v["episodes"].as_u64().is_some_and(|n| n > 0) && v["errors"] == v["episodes"];
-            i32::from(ran_none)
+        Cmd::Batch { episodes, opts } => opts.try_into().and_then(|o| {
+            session::batch(&o, episodes, |i, r| match r {
+                Ok(r) => eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses),
+                Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),
+            })
+            .map(|v| {
+                println!("{v}");
+                // Failed tasks are results; a batch none of whose episodes could run at all (the
+                // endpoint or the gym failing every time) is a failure of the batch.
+                let ran_none = v["episodes"].as_u64().is_some_and(|n| n > 0) && v["errors"] == v["episodes"];
+                i32::from(ran_none)
+            })
         }),
         Cmd::View { run_dir } => agent_host::viewer::write(&run_dir).map(|p| {
             println!("{}", p.display());
@@ -502,7 +557,7 @@ fn main() {
         }
         Cmd::Gyms => gyms(),
         Cmd::Service { which } => service::run(which),
-        Cmd::Replay { gym, seed, do_nothing, out } => replay(&gym, seed, do_nothing, &out),
+        Cmd::Replay { gym, placement, do_nothing, out } => replay(&gym, &placement, do_nothing, &out),
         Cmd::AuthorDemo { gym } => author_demo(&gym),
         Cmd::Import { which } => import(which),
         Cmd::Validate { gym, seed, out, keep_trace } => validate(&gym, seed, out, keep_trace),
@@ -562,9 +617,11 @@ fn gyms() -> anyhow::Result<i32> {
     Ok(0)
 }
 
-fn replay(gym: &str, seed: u64, do_nothing: bool, out: &std::path::Path) -> anyhow::Result<i32> {
+fn replay(gym: &str, placement: &PlacementArgs, do_nothing: bool, out: &std::path::Path) -> anyhow::Result<i32> {
+    placement.check()?;
     let scene = launch::resolve_scene(gym)?;
-    let r = lockstep::replay(&scene, seed, do_nothing, Some(out))?;
+    let r =
+        lockstep::episode::replay_perturbed(&scene, placement.seed, placement.perturb.clone(), do_nothing, Some(out))?;
     for (row, why) in &r.failures {
         eprintln!("r2g replay: chunk from row {row} did not execute: {why}");
     }
@@ -633,7 +690,11 @@ fn up(
     robot_config: std::path::PathBuf,
     control_args: Vec<String>,
     side: &launch::RobotSide,
+    placement: &PlacementArgs,
 ) -> anyhow::Result<i32> {
+    placement.check()?;
+    let mut sim_args = trace_dir.map(|d| vec!["--trace-dir".into(), d.display().to_string()]).unwrap_or_default();
+    sim_args.extend(placement.sim_args());
     let opts = UpOptions {
         scene: launch::resolve_scene(gym)?,
         instance: instance.into(),
@@ -643,7 +704,7 @@ fn up(
         },
         render_hz,
         control_args,
-        sim_args: trace_dir.map(|d| vec!["--trace-dir".into(), d.display().to_string()]).unwrap_or_default(),
+        sim_args,
         robot_config: Some(robot_config),
         ready_timeout: Duration::from_secs(60),
     };

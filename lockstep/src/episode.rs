@@ -8,6 +8,7 @@ use anyhow::Context;
 use controllers::LimiterConfig;
 use ipc_schema::{ControlType, JointCommand, Reply, Request, RequestKind, Status, MAX_CHUNK, WAYPOINT_LEN};
 use runtime::controller::Controller;
+use sim_host::placement::Perturbation;
 use sim_host::trace::{evaluate, Evaluation, Trace};
 use sim_host::Sim;
 
@@ -27,9 +28,15 @@ pub struct Episode {
 impl Episode {
     /// Loads a scene and starts an episode from its initial state, augmented by `seed`.
     pub fn new(scene: &Path, seed: u64) -> anyhow::Result<Self> {
+        Self::perturbed(scene, seed, None)
+    }
+
+    /// As [`Episode::new`], with free objects moved by a placement perturbation drawn from
+    /// `seed` (sim_host::placement).
+    pub fn perturbed(scene: &Path, seed: u64, perturbation: Option<Perturbation>) -> anyhow::Result<Self> {
         let mut sim = Sim::load(scene).with_context(|| format!("loading scene {}", scene.display()))?;
         sim.seed = seed;
-        sim.reset();
+        sim.set_perturbation(perturbation)?;
         let (robot, safety) = runtime::scene_robot(scene)?;
         let ctl = Controller::new(robot, LimiterConfig::default(), sim.scene.timestep_s).with_safety(safety);
         let mut trace = sim.new_trace();
@@ -105,7 +112,19 @@ pub struct Replay {
 /// Replays a scene's demonstration (or nothing, with `do_nothing`) in lockstep, lets physics
 /// settle, and judges the trace. Chunks of at most 256 rows run one after the other.
 pub fn replay(scene: &Path, seed: u64, do_nothing: bool, out: Option<&Path>) -> anyhow::Result<Replay> {
-    let mut ep = Episode::new(scene, seed)?;
+    replay_perturbed(scene, seed, None, do_nothing, out)
+}
+
+/// [`replay`] with the placement perturbation `perturbation` drawn from `seed`: the
+/// demonstration's absolute joint targets, played where the objects no longer are.
+pub fn replay_perturbed(
+    scene: &Path,
+    seed: u64,
+    perturbation: Option<Perturbation>,
+    do_nothing: bool,
+    out: Option<&Path>,
+) -> anyhow::Result<Replay> {
+    let mut ep = Episode::perturbed(scene, seed, perturbation)?;
     let mut failures = Vec::new();
     if !do_nothing {
         let demo = ep

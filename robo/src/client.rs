@@ -34,9 +34,12 @@ pub enum RoboError {
     UnknownCamera { name: String, known: String },
     #[error("bad camera size for '{name}': {detail}")]
     BadSize { name: String, detail: String },
-    #[error("no image from camera '{0}' within {1:.1} s (is rendering on?)")]
+    #[error("no image from camera '{0}' within {1:.1} s (is rendering on, and is its camera host delivering frames?)")]
     NoFrame(String, f64),
 }
+
+/// A frame made longer ago than this (CLOCK_MONOTONIC) is never shown in place of a fresh one.
+const STALE_FRAME_NS: u64 = 2_000_000_000;
 
 fn ipc<E: std::fmt::Debug>(what: &'static str) -> impl Fn(E) -> RoboError {
     move |e| RoboError::Ipc(format!("{what}: {e:?}"))
@@ -282,6 +285,7 @@ impl Client {
             return Err(RoboError::UnknownCamera { name: name.into(), known });
         };
         let (not_before_reset, not_before_s) = (self.settled_reset, self.settled_s);
+        let submitted_ns = self.submitted_ns;
         let t0 = Instant::now();
         loop {
             let cam = &mut self.cameras[i];
@@ -297,7 +301,12 @@ impl Client {
                 // Reset ids grow by one per reset; compared modulo 2^32.
                 let episodes_ahead = h.reset_id.wrapping_sub(not_before_reset) as i32;
                 let fresh = episodes_ahead > 0 || (episodes_ahead == 0 && h.sim_time_s >= not_before_s - 1e-9);
-                if fresh || (episodes_ahead == 0 && t0.elapsed() >= wait) {
+                // After the wait, an older frame of this episode only if it was made after the
+                // last chunk was sent, and recently: a renderer that lags behind the motion. A
+                // camera (host) that stopped delivering gives no frame.
+                let recent = h.rendered_ns > submitted_ns
+                    && ipc_schema::monotonic_ns().saturating_sub(h.rendered_ns) < STALE_FRAME_NS;
+                if fresh || (episodes_ahead == 0 && recent && t0.elapsed() >= wait) {
                     return Ok(f.clone());
                 }
                 if t0.elapsed() >= wait {

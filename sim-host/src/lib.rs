@@ -1,6 +1,7 @@
 #![doc = include_str!("../README.md")]
 
 pub mod mjcf;
+pub mod placement;
 pub mod render;
 pub mod scene;
 pub mod sim;

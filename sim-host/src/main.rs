@@ -47,6 +47,14 @@ struct Args {
     /// rendered.
     #[arg(long = "camera-host", value_name = "NAME")]
     camera_hosts: Vec<String>,
+    /// Augmentation seed of every episode (0: the scene as written; otherwise each object
+    /// moves by its jitter, and by --perturb).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Move free objects further at each reset: `xy=0.05,yaw=30[,objects=block+plate]` (up
+    /// to 5 cm in x and y, 30 degrees of yaw), drawn from --seed, clear of everything else.
+    #[arg(long, value_name = "SPEC", requires = "seed")]
+    perturb: Option<sim_host::placement::Perturbation>,
 }
 
 /// Writes an episode's trace and its evaluation; a failure to write is reported, not fatal.
@@ -84,6 +92,11 @@ fn run() -> anyhow::Result<()> {
     process::die_with_parent();
     let services = Services::new(&args.instance)?;
     let mut sim = Sim::load(&args.scene).with_context(|| format!("loading scene {}", args.scene.display()))?;
+    sim.seed = args.seed;
+    sim.set_perturbation(args.perturb.clone())?;
+    if let Some(note) = sim.placed.as_ref().and_then(|p| p.note.as_ref()) {
+        eprintln!("r2g-sim: {note}");
+    }
     if let Some(p) = &args.dump_mjcf {
         std::fs::write(p, &sim.mjcf).with_context(|| format!("writing {}", p.display()))?;
         if args.exit_after_dump {

@@ -10,6 +10,7 @@ use mujoco_rs::mujoco_c::{mj_contactForce, mj_forward, mj_resetData};
 use mujoco_rs::prelude::*;
 
 use crate::mjcf;
+use crate::placement::{symmetric, turn_about_z, Perturbation, PerturbationError, Placed, CLEARANCE_M, REACH_M, TRIES};
 use crate::scene::Scene;
 use crate::trace::{Sample, Trace};
 
@@ -72,6 +73,10 @@ pub struct Sim {
     pub owners: Vec<String>,
     /// Seed of the episode's augmentation (0: the scene exactly as written).
     pub seed: u64,
+    /// Moves free objects further than their jitter at each reset with a non-zero seed.
+    perturbation: Option<Perturbation>,
+    /// Where the last reset's perturbation put the moved objects.
+    pub placed: Option<Placed>,
     steps: u64,
 }
 
@@ -193,6 +198,8 @@ impl Sim {
             reset_state_seq: 0,
             owners,
             seed: 0,
+            perturbation: None,
+            placed: None,
             steps: 0,
         };
         sim.reset();
@@ -230,32 +237,149 @@ impl Sim {
         unsafe { mj_forward(self.model.ffi(), self.data.ffi_mut()) };
     }
 
-    /// Moves jittered objects by the episode seed (seed 0 leaves the scene as written).
+    /// Moves objects by the episode seed (seed 0 leaves the scene as written): each object by
+    /// its own `jitter_xy_m`/`jitter_yaw_deg`, and those the [`Perturbation`] names by its
+    /// ranges instead, in a draw that keeps them clear of everything else ([`crate::placement`]).
     fn augment(&mut self) {
+        self.placed = None;
         if self.seed == 0 {
             return;
         }
         let mut rng = controllers::ik::SplitMix64::new(self.seed);
+        let moved = match &self.perturbation {
+            Some(p) => p.moved(&self.scene).unwrap_or_default(),
+            None => Vec::new(),
+        };
         let specs: Vec<(f64, f64)> = self.scene.objects.iter().map(|o| (o.jitter_xy_m, o.jitter_yaw_deg)).collect();
-        let objects = self.layout.objects.clone();
-        let qpos = self.qpos_mut();
-        for ((xy, yaw), (_, free)) in specs.into_iter().zip(objects) {
-            let (dx, dy, dyaw) = (
-                (2.0 * rng.next_f64() - 1.0) * xy,
-                (2.0 * rng.next_f64() - 1.0) * xy,
-                ((2.0 * rng.next_f64() - 1.0) * yaw).to_radians(),
-            );
-            let Some(a) = free else { continue };
-            qpos[a] += dx;
-            qpos[a + 1] += dy;
-            // Turn about world z: q' = rz(dyaw) · q, with q = (w, x, y, z) at a+3.
-            let (s, c) = (0.5 * dyaw).sin_cos();
-            let q = [qpos[a + 3], qpos[a + 4], qpos[a + 5], qpos[a + 6]];
-            qpos[a + 3] = c * q[0] - s * q[3];
-            qpos[a + 4] = c * q[1] - s * q[2];
-            qpos[a + 5] = c * q[2] + s * q[1];
-            qpos[a + 6] = c * q[3] + s * q[0];
+        for (i, (xy, yaw)) in specs.into_iter().enumerate() {
+            // Every object draws its jitter, so adding a perturbation changes no other draw.
+            let (dx, dy, dyaw) =
+                (symmetric(&mut rng) * xy, symmetric(&mut rng) * xy, (symmetric(&mut rng) * yaw).to_radians());
+            if !moved.contains(&i) {
+                self.offset_object(i, dx, dy, dyaw);
+            }
         }
+        let Some(p) = self.perturbation.clone() else { return };
+        let start: Vec<f64> = self.qpos().to_vec();
+        let mut placed = Placed::default();
+        for attempt in 0..TRIES {
+            for &i in &moved {
+                let (dx, dy, dyaw) = (
+                    symmetric(&mut rng) * p.xy_m,
+                    symmetric(&mut rng) * p.xy_m,
+                    (symmetric(&mut rng) * p.yaw_deg).to_radians(),
+                );
+                self.offset_object(i, dx, dy, dyaw);
+            }
+            if self.placement_fits(&moved) {
+                placed.rejected = attempt;
+                break;
+            }
+            self.qpos_mut().copy_from_slice(&start);
+            if attempt + 1 == TRIES {
+                placed.rejected = TRIES;
+                placed.note = Some(format!(
+                    "no placement within {p} kept {CLEARANCE_M} m from everything else in {TRIES} draws (seed {}): \
+                     the written placement was kept",
+                    self.seed
+                ));
+            }
+        }
+        let qpos = self.qpos();
+        for &i in &moved {
+            if let (o, Some(a)) = (&self.scene.objects[i], self.layout.objects[i].1) {
+                placed.objects.push((
+                    o.name.clone(),
+                    [qpos[a], qpos[a + 1], qpos[a + 2]],
+                    [qpos[a + 3], qpos[a + 4], qpos[a + 5], qpos[a + 6]],
+                ));
+            }
+        }
+        self.placed = Some(placed);
+    }
+
+    /// Moves object `i`'s start pose by (dx, dy) and turns it by `dyaw` about world z.
+    fn offset_object(&mut self, i: usize, dx: f64, dy: f64, dyaw: f64) {
+        let Some(a) = self.layout.objects[i].1 else { return };
+        let qpos = self.qpos_mut();
+        qpos[a] += dx;
+        qpos[a + 1] += dy;
+        let q = turn_about_z([qpos[a + 3], qpos[a + 4], qpos[a + 5], qpos[a + 6]], dyaw);
+        qpos[a + 3..a + 7].copy_from_slice(&q);
+    }
+
+    /// Whether the `moved` objects, as qpos now places them, sit on the table within reach and
+    /// keep [`CLEARANCE_M`] from every other collision geometry (the table and floor aside).
+    fn placement_fits(&mut self, moved: &[usize]) -> bool {
+        // SAFETY: the live model/data pair of this Sim; kinematics only (positions of geoms).
+        unsafe { mujoco_rs::mujoco_c::mj_kinematics(self.model.ffi(), self.data.ffi_mut()) };
+        let base = self.scene.robot.base_position_m;
+        let qpos = self.qpos();
+        for &i in moved {
+            let Some(a) = self.layout.objects[i].1 else { continue };
+            let (x, y) = (qpos[a], qpos[a + 1]);
+            if let Some(t) = &self.scene.table {
+                let c = t.top_center_m;
+                if (x - c[0]).abs() > t.size_m[0] / 2.0 - CLEARANCE_M
+                    || (y - c[1]).abs() > t.size_m[1] / 2.0 - CLEARANCE_M
+                {
+                    return false;
+                }
+            }
+            if (x - base[0]).hypot(y - base[1]) > REACH_M {
+                return false;
+            }
+        }
+        let m = self.model.ffi();
+        let ng = m.ngeom as usize;
+        // SAFETY: contype/conaffinity hold ngeom entries.
+        let (contype, conaff) = unsafe {
+            (std::slice::from_raw_parts(m.geom_contype, ng), std::slice::from_raw_parts(m.geom_conaffinity, ng))
+        };
+        let owners = &self.layout.geom_owner;
+        let moved_owner: Vec<u16> = moved.iter().map(|&i| i as u16).collect();
+        let (table, floor) = (self.owner_id("table"), self.owner_id("floor"));
+        let solid = |g: usize| contype[g] != 0 || conaff[g] != 0;
+        for g1 in (0..ng).filter(|&g| solid(g) && moved_owner.contains(&owners[g])) {
+            for g2 in (0..ng).filter(|&g| solid(g) && owners[g] != owners[g1]) {
+                let o2 = owners[g2];
+                // Each pair of moved objects once; the surfaces they stand on never count.
+                if o2 == u16::MAX || Some(o2) == table || Some(o2) == floor || (moved_owner.contains(&o2) && g2 < g1) {
+                    continue;
+                }
+                let mut fromto = [0.0f64; 6];
+                // SAFETY: valid geom ids of this model; fromto is the 6-number buffer it fills.
+                let d = unsafe {
+                    mujoco_rs::mujoco_c::mj_geomDistance(
+                        m,
+                        self.data.ffi_mut(),
+                        g1 as i32,
+                        g2 as i32,
+                        CLEARANCE_M,
+                        &mut fromto,
+                    )
+                };
+                if d < CLEARANCE_M {
+                    return false;
+                }
+            }
+        }
+        true
+    }
+
+    fn owner_id(&self, name: &str) -> Option<u16> {
+        self.owners.iter().position(|o| o == name).map(|i| i as u16)
+    }
+
+    /// Sets the placement perturbation applied at every reset with a non-zero seed (checked
+    /// against the scene: named objects must exist and be free), and resets.
+    pub fn set_perturbation(&mut self, p: Option<Perturbation>) -> Result<(), PerturbationError> {
+        if let Some(p) = &p {
+            p.moved(&self.scene)?;
+        }
+        self.perturbation = p;
+        self.reset();
+        Ok(())
     }
 
     /// Samples the trace when it is due (every 10 ms of simulated time, and at step 0).
@@ -271,6 +395,7 @@ impl Sim {
         Trace {
             gym: self.scene.name.clone(),
             seed: self.seed,
+            perturbation: self.perturbation.as_ref().map(|p| p.to_string()),
             owners: self.owners.clone(),
             objects: self.scene.objects.iter().map(|o| o.name.clone()).collect(),
             joints: self.layout.fixture_joints.iter().map(|j| j.0.clone()).collect(),

@@ -36,6 +36,9 @@ pub struct Sample {
 pub struct Trace {
     pub gym: String,
     pub seed: u64,
+    /// The placement perturbation of the episode (`xy=..,yaw=..`), if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub perturbation: Option<String>,
     /// Names of what can touch: the objects, the fixtures, then `table`, `robot`, `floor`.
     pub owners: Vec<String>,
     pub objects: Vec<String>,

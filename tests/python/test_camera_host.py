@@ -179,3 +179,24 @@ def test_a_frame_size_that_is_not_the_calibrations_fails_the_start_with_the_reas
     assert "320x240, configured 640x480" in err, err[-2000:]
     assert "camera host 'agentview'" in err and "before the instance was ready" in err, err[-2000:]
     assert "Traceback" not in err and "panicked" not in err
+
+
+def test_a_camera_that_stops_gives_no_stale_image_and_nothing_else_stops(hosted) -> None:
+    """Its host dies (SIGKILL, the child of the `r2g up` this module started): after the arm moves,
+    `robo` says that camera sent no image instead of showing the old one; the other camera, the
+    arm and the instance go on."""
+    children = Path(f"/proc/{hosted.pid}/task/{hosted.pid}/children").read_text().split()
+    def argv(pid: str) -> list[str]:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")
+
+    host = next(int(c) for c in children
+                if any(a.endswith("r2g_camera_host.py") for a in argv(c)) and "agentview" in argv(c))
+    os.kill(host, 9)
+    s = robo.get_state([])
+    q = list(s["joint"])
+    q[0] -= 0.1
+    assert robo.post_actions({"actions": [q + [-1.0]], "type": "joint", "freq": ""}) == 1
+    with pytest.raises(Exception, match="no image from camera 'agentview'"):
+        robo.get_state(["agentview"], raw=True)
+    assert robo.get_state(["wrist"], raw=True)["image"]["wrist"].shape == (480, 640, 3)
+    assert hosted.poll() is None
