@@ -152,6 +152,33 @@ enum Cmd {
         #[command(subcommand)]
         which: ImportCmd,
     },
+    /// Expand a gym into a pool of variants (object size and pose, support height, friction and
+    /// mass, distractors, lighting and colours), each factor swept alone for its feasible range
+    /// first, then N candidates combining one to three factors; the demonstration is adapted to
+    /// the moved objects and re-solved with IK; failures are shrunk toward the parent; only
+    /// variants that pass `r2g validate` are kept, near-duplicates removed. Each variant is a
+    /// gym folder (usable by up, replay, episode, batch). Writes report.json and
+    /// contact_sheet.png into the pool; ends with one JSON line.
+    Augment {
+        /// Gym name, gym folder, or scene file.
+        gym: String,
+        #[arg(long, default_value_t = 50)]
+        candidates: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// The pool folder (must not exist, or be empty).
+        #[arg(long)]
+        out: std::path::PathBuf,
+        /// Candidates validated at once (threads; each a self-contained unit of work).
+        #[arg(long, default_value_t = 1)]
+        jobs: usize,
+        /// Times a failed candidate is shrunk toward its parent before it is dropped.
+        #[arg(long, default_value_t = 2)]
+        shrink_tries: usize,
+        /// Skip the contact sheet (no rendering at all).
+        #[arg(long)]
+        no_sheet: bool,
+    },
     /// Run the validation gate: the gym executed natively from its inputs (lockstep, in
     /// process), every input hashed into evidence.json; checks: no initial penetration and at
     /// rest, every waypoint reachable, event timing against the source, task success, worst
@@ -560,6 +587,9 @@ fn main() {
         Cmd::Replay { gym, placement, do_nothing, out } => replay(&gym, &placement, do_nothing, &out),
         Cmd::AuthorDemo { gym } => author_demo(&gym),
         Cmd::Import { which } => import(which),
+        Cmd::Augment { gym, candidates, seed, out, jobs, shrink_tries, no_sheet } => {
+            augment(&gym, candidates, seed, out, jobs, shrink_tries, !no_sheet)
+        }
         Cmd::Validate { gym, seed, out, keep_trace } => validate(&gym, seed, out, keep_trace),
         Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => bench::sim::run(&gyms, frames).map(|_| 0),
         Cmd::Kin { which: KinCmd::Fk { args } } => kin::run(false, &args.robot, &args.tcp, args.frame.as_deref()),
@@ -655,6 +685,49 @@ fn import(which: ImportCmd) -> anyhow::Result<i32> {
     eprintln!("r2g import: wrote {} ({} rows)", done.dir.display(), done.rows);
     let mut line = done.report;
     line["gym"] = serde_json::json!(done.dir.display().to_string());
+    println!("{line}");
+    Ok(0)
+}
+
+fn augment(
+    gym: &str,
+    candidates: usize,
+    seed: u64,
+    out: std::path::PathBuf,
+    jobs: usize,
+    shrink_tries: usize,
+    sheet: bool,
+) -> anyhow::Result<i32> {
+    let scene = launch::resolve_scene(gym)?;
+    let mut o = real2sim::augment::Options::new(out);
+    o.candidates = candidates;
+    o.seed = seed;
+    o.jobs = jobs;
+    o.shrink_tries = shrink_tries;
+    o.sheet = sheet;
+    let r = real2sim::augment::augment(&scene, &o, &|m: &str| eprintln!("r2g augment: {m}"))?;
+    eprintln!("single-factor sweeps (feasible range per parameter):");
+    for (k, v) in &r.feasible {
+        eprintln!("  {k:<16} [{:.3}, {:.3}]", v[0], v[1]);
+    }
+    eprintln!("{} combined candidates, per factor:", r.candidates);
+    for (f, c) in &r.per_factor {
+        eprintln!("  {f:<16} {c:?}");
+    }
+    eprintln!(
+        "kept {} variants ({} near-duplicates removed); {:.1} validated candidates per minute; {} gate runs in {:.0} s",
+        r.kept.len(),
+        r.deduplicated.len(),
+        r.validated_per_minute,
+        r.gate_runs,
+        r.wall_s
+    );
+    let line = serde_json::json!({
+        "parent": r.parent, "pool": o.out.display().to_string(), "candidates": r.candidates, "kept": r.kept.len(),
+        "deduplicated": r.deduplicated.len(), "dropped": r.dropped.len(), "feasible": r.feasible, "per_factor": r.per_factor,
+        "validated_per_minute": r.validated_per_minute, "gate_runs": r.gate_runs, "wall_s": r.wall_s,
+        "contact_sheet": r.contact_sheet,
+    });
     println!("{line}");
     Ok(0)
 }

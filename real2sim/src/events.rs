@@ -82,6 +82,9 @@ pub struct SourceGrasp {
 pub struct Anchor {
     pub row: usize,
     pub entity: String,
+    /// At a release: the object let go of here.
+    #[serde(default)]
+    pub released: Option<String>,
 }
 
 /// `events.json` of a gym.
@@ -275,13 +278,13 @@ pub fn anchors(events: &[Interval], row_at: &dyn Fn(f64) -> usize) -> Vec<Anchor
     let row = |t: f64| row_at(t);
     let mut out = Vec::new();
     for g in events.iter().filter(|e| e.kind == Kind::Grasp) {
-        out.push(Anchor { row: row(g.onset_s), entity: g.subject.clone() });
+        out.push(Anchor { row: row(g.onset_s), entity: g.subject.clone(), released: None });
         let after = events
             .iter()
             .filter(|e| e.kind == Kind::Support && e.subject == g.subject && e.onset_s >= g.offset_s - 0.3)
             .min_by(|a, b| a.onset_s.total_cmp(&b.onset_s));
         let target = after.map(|e| e.other.clone()).filter(|o| o != Scene::TABLE).unwrap_or_else(|| g.subject.clone());
-        out.push(Anchor { row: row(g.offset_s), entity: target });
+        out.push(Anchor { row: row(g.offset_s), entity: target, released: Some(g.subject.clone()) });
     }
     let held = |e: &Interval| {
         events.iter().any(|g| {
@@ -292,8 +295,8 @@ pub fn anchors(events: &[Interval], row_at: &dyn Fn(f64) -> usize) -> Vec<Anchor
         if c.offset_s - c.onset_s < 0.3 {
             continue;
         }
-        out.push(Anchor { row: row(c.onset_s), entity: c.other.clone() });
-        out.push(Anchor { row: row(c.offset_s), entity: c.other.clone() });
+        out.push(Anchor { row: row(c.onset_s), entity: c.other.clone(), released: None });
+        out.push(Anchor { row: row(c.offset_s), entity: c.other.clone(), released: None });
     }
     out.sort_by_key(|a| a.row);
     out

@@ -1,5 +1,6 @@
 #![doc = include_str!("../README.md")]
 
+pub mod augment;
 pub mod droid;
 pub mod egodex;
 pub mod events;
@@ -10,6 +11,7 @@ pub mod record;
 pub mod replay;
 pub mod resample;
 pub mod retarget;
+pub mod sheet;
 pub mod validate;
 
 pub use record::Record;

@@ -190,6 +190,11 @@ fn speeds(scene: &Scene, trace: &Trace, from_s: f64) -> Vec<(String, f64, f64)> 
 
 /// Runs the gate on the gym whose scene file is `scene_path` and writes the evidence.
 pub fn validate(scene_path: &Path, o: &Options) -> Result<(Evidence, PathBuf)> {
+    validate_native(scene_path, o).map(|(e, p, _)| (e, p))
+}
+
+/// As [`validate`], also handing back the native run (its trace and row times).
+pub fn validate_native(scene_path: &Path, o: &Options) -> Result<(Evidence, PathBuf, crate::replay::Native)> {
     let started = Instant::now();
     let th = o.thresholds;
     let scene = Scene::load(scene_path).map_err(|e| Error::Episode(anyhow::Error::from(e)))?;
@@ -378,5 +383,5 @@ pub fn validate(scene_path: &Path, o: &Options) -> Result<(Evidence, PathBuf)> {
             &serde_json::to_vec(&ep.trace).map_err(|e| Error::Episode(e.into()))?,
         )?;
     }
-    Ok((evidence, path))
+    Ok((evidence, path, native_run))
 }
