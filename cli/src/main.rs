@@ -178,6 +178,13 @@ enum Cmd {
         /// Skip the contact sheet (no rendering at all).
         #[arg(long)]
         no_sheet: bool,
+        /// Only these factors (comma-separated): object_size, object_pose, support_height,
+        /// friction_mass, distractors, visual.
+        #[arg(long, value_delimiter = ',')]
+        factors: Vec<String>,
+        /// At most this many sweep levels per parameter and side (nearest the parent first).
+        #[arg(long)]
+        levels: Option<usize>,
     },
     /// Run the validation gate: the gym executed natively from its inputs (lockstep, in
     /// process), every input hashed into evidence.json; checks: no initial penetration and at
@@ -587,9 +594,29 @@ fn main() {
         Cmd::Replay { gym, placement, do_nothing, out } => replay(&gym, &placement, do_nothing, &out),
         Cmd::AuthorDemo { gym } => author_demo(&gym),
         Cmd::Import { which } => import(which),
-        Cmd::Augment { gym, candidates, seed, out, jobs, shrink_tries, no_sheet } => {
-            augment(&gym, candidates, seed, out, jobs, shrink_tries, !no_sheet)
-        }
+        Cmd::Augment { gym, candidates, seed, out, jobs, shrink_tries, no_sheet, factors, levels } => (|| {
+            let mut o = real2sim::augment::Options::new(out);
+            o.candidates = candidates;
+            o.seed = seed;
+            o.jobs = jobs;
+            o.shrink_tries = shrink_tries;
+            o.sheet = !no_sheet;
+            o.max_levels = levels.unwrap_or(usize::MAX);
+            if !factors.is_empty() {
+                o.factors = factors
+                    .iter()
+                    .map(|f| {
+                        real2sim::augment::FACTORS.iter().copied().find(|k| k.name() == f).ok_or_else(|| {
+                            anyhow::anyhow!(
+                                "--factors: unknown factor '{f}' (accepted: {})",
+                                real2sim::augment::FACTORS.map(|k| k.name()).join(", ")
+                            )
+                        })
+                    })
+                    .collect::<anyhow::Result<_>>()?;
+            }
+            augment(&gym, o)
+        })(),
         Cmd::Validate { gym, seed, out, keep_trace } => validate(&gym, seed, out, keep_trace),
         Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => bench::sim::run(&gyms, frames).map(|_| 0),
         Cmd::Kin { which: KinCmd::Fk { args } } => kin::run(false, &args.robot, &args.tcp, args.frame.as_deref()),
@@ -689,22 +716,8 @@ fn import(which: ImportCmd) -> anyhow::Result<i32> {
     Ok(0)
 }
 
-fn augment(
-    gym: &str,
-    candidates: usize,
-    seed: u64,
-    out: std::path::PathBuf,
-    jobs: usize,
-    shrink_tries: usize,
-    sheet: bool,
-) -> anyhow::Result<i32> {
+fn augment(gym: &str, o: real2sim::augment::Options) -> anyhow::Result<i32> {
     let scene = launch::resolve_scene(gym)?;
-    let mut o = real2sim::augment::Options::new(out);
-    o.candidates = candidates;
-    o.seed = seed;
-    o.jobs = jobs;
-    o.shrink_tries = shrink_tries;
-    o.sheet = sheet;
     let r = real2sim::augment::augment(&scene, &o, &|m: &str| eprintln!("r2g augment: {m}"))?;
     eprintln!("single-factor sweeps (feasible range per parameter):");
     for (k, v) in &r.feasible {

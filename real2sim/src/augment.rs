@@ -247,11 +247,25 @@ pub struct Options {
     pub shrink_tries: usize,
     pub dedupe_tolerance: f64,
     pub sheet: bool,
+    /// The factors varied (default: all of [`FACTORS`]).
+    pub factors: Vec<Factor>,
+    /// At most this many sweep levels per parameter and side, nearest the parent first.
+    pub max_levels: usize,
 }
 
 impl Options {
     pub fn new(out: PathBuf) -> Self {
-        Self { candidates: 50, seed: 1, out, jobs: 1, shrink_tries: 2, dedupe_tolerance: 0.05, sheet: true }
+        Self {
+            candidates: 50,
+            seed: 1,
+            out,
+            jobs: 1,
+            shrink_tries: 2,
+            dedupe_tolerance: 0.05,
+            sheet: true,
+            factors: FACTORS.to_vec(),
+            max_levels: usize::MAX,
+        }
     }
 }
 
@@ -974,7 +988,11 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
 
     // 1. Sweeps: each factor alone, outward from the parent.
     let sweep_started = Instant::now();
-    let plan = sweep_levels();
+    let plan: Vec<(Factor, &str, Vec<Params>)> = sweep_levels()
+        .into_iter()
+        .filter(|(f, _, _)| o.factors.contains(f))
+        .map(|(f, axis, levels)| (f, axis, levels.into_iter().take(o.max_levels).collect()))
+        .collect();
     let lines: Vec<(usize, usize, Params)> = plan
         .iter()
         .enumerate()
@@ -1030,6 +1048,7 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
     let available: Vec<Factor> = FACTORS
         .iter()
         .copied()
+        .filter(|f| o.factors.contains(f))
         .filter(|f| match f {
             Factor::ObjectSize => feasible.get("size_scale").is_some_and(|r| r[1] - r[0] > 1e-9),
             Factor::ObjectPose => {

@@ -7,22 +7,14 @@
 //! `R2G_ROUNDTRIP_GYMS=pick_block_plate,stack_bowls cargo test -p real2sim --release --test
 //! import -- --nocapture` prints the figures for more gyms (default: pick_block_plate).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 use real2sim::record::Record;
 
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("checkout").to_path_buf()
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("r2s-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).expect("tmp");
-    d
-}
+mod common;
+use common::{root, tmp};
 
 fn synth(layout: &str, gym: &str, out: &Path, brk: Option<&str>) {
     let mut cmd = Command::new(root().join(".venv/bin/python"));
