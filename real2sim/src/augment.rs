@@ -238,7 +238,7 @@ fn parent_value(param: &str) -> f64 {
     }
 }
 
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct Options {
     pub candidates: usize,
     pub seed: u64,
@@ -251,6 +251,8 @@ pub struct Options {
     pub factors: Vec<Factor>,
     /// At most this many sweep levels per parameter and side, nearest the parent first.
     pub max_levels: usize,
+    /// How each candidate folder is judged (default: [`in_process`]).
+    pub validator: Validator,
 }
 
 impl Options {
@@ -265,6 +267,7 @@ impl Options {
             sheet: true,
             factors: FACTORS.to_vec(),
             max_levels: usize::MAX,
+            validator: in_process(),
         }
     }
 }
@@ -765,7 +768,14 @@ fn adapt(
 }
 
 /// Builds and validates one candidate, shrinking it toward the parent on failure.
-fn run_candidate(parent: &Parent, name: String, params: Params, tries: usize, pool_tmp: &Path) -> Outcome {
+fn run_candidate(
+    parent: &Parent,
+    name: String,
+    params: Params,
+    tries: usize,
+    pool_tmp: &Path,
+    validator: &Validator,
+) -> Outcome {
     let mut attempts = Vec::new();
     let mut p = params.clone();
     let factors = params.factors();
@@ -773,10 +783,7 @@ fn run_candidate(parent: &Parent, name: String, params: Params, tries: usize, po
         let dir = pool_tmp.join(&name);
         let _ = std::fs::remove_dir_all(&dir);
         let result = build(parent, &p, &dir).and_then(|b| {
-            let scene = b.staging.dir.join("scene.toml");
-            let mut o = validate::Options::new(b.staging.dir.clone());
-            o.seed = 0;
-            let (ev, _) = validate::validate(&scene, &o)?;
+            let ev = validator(&b.staging.dir)?;
             Ok((b, ev))
         });
         match result {
@@ -808,7 +815,7 @@ fn run_candidate(parent: &Parent, name: String, params: Params, tries: usize, po
                 let why = if !visual_ok {
                     "visual-only variant changed the physics (trace hash differs from the parent's)".to_string()
                 } else {
-                    failed_checks(&ev)
+                    ev.failed.clone()
                 };
                 attempts.push((p.clone(), false, why));
             }
@@ -854,6 +861,56 @@ impl Outcome {
         ];
         self
     }
+}
+
+/// What a validator reports of a variant folder.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Verdict {
+    pub success: bool,
+    pub trace_sha256: String,
+    pub inputs_sha256: String,
+    /// The failed checks and their values, `; `-separated.
+    pub failed: String,
+}
+
+impl Verdict {
+    /// From an `evidence.json` (what `r2g validate <dir> --out <dir>` writes), for validators
+    /// that run elsewhere.
+    pub fn from_evidence(v: &serde_json::Value) -> Self {
+        let failed = v["checks"]
+            .as_object()
+            .map(|c| {
+                c.iter()
+                    .filter(|(_, c)| c["pass"] != true)
+                    .map(|(k, c)| format!("{k}: {}", c["value"]))
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            })
+            .unwrap_or_default();
+        Self {
+            success: v["success"] == true,
+            trace_sha256: v["trace_sha256"].as_str().unwrap_or_default().into(),
+            inputs_sha256: v["inputs_sha256"].as_str().unwrap_or_default().into(),
+            failed,
+        }
+    }
+}
+
+/// The gate as augmentation calls it: a variant folder in, its verdict out (its evidence
+/// written into the folder). One unit of work, no state shared between calls.
+pub type Validator = std::sync::Arc<dyn Fn(&Path) -> Result<Verdict> + Send + Sync>;
+
+/// [`validate::validate`] in this process, seed 0, evidence into the folder.
+pub fn in_process() -> Validator {
+    std::sync::Arc::new(|dir: &Path| {
+        let (ev, _) = validate::validate(&dir.join("scene.toml"), &validate::Options::new(dir.to_path_buf()))?;
+        Ok(Verdict {
+            success: ev.success,
+            trace_sha256: ev.trace_sha256.clone(),
+            inputs_sha256: ev.inputs_sha256.clone(),
+            failed: failed_checks(&ev),
+        })
+    })
 }
 
 fn failed_checks(ev: &Evidence) -> String {
@@ -920,7 +977,10 @@ pub struct Report {
     pub sweep_wall_s: f64,
     pub candidate_wall_s: f64,
     pub gate_runs: usize,
+    /// Kept (gate-passing) candidates per minute of the candidate phase.
     pub validated_per_minute: f64,
+    /// The same over the whole run (the parent, the sweeps and the sheet included).
+    pub validated_per_minute_overall: f64,
     pub gate_runs_per_minute: f64,
     pub contact_sheet: Option<String>,
     pub jobs: usize,
@@ -1005,7 +1065,7 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
             plan[i].0.name(),
             plan[i].1.replace(['-', '+'], if plan[i].1.ends_with('-') { "lo" } else { "hi" })
         );
-        let r = run_candidate(&parent, name, p.clone(), 0, &tmp.join("sweeps"));
+        let r = run_candidate(&parent, name, p.clone(), 0, &tmp.join("sweeps"), &o.validator);
         gate_runs.fetch_add(r.attempts.len(), Ordering::Relaxed);
         (i, k, p, r)
     });
@@ -1111,7 +1171,7 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
     }
     progress(&format!("validating {} candidates on {} job(s)", candidates.len(), o.jobs));
     let outcomes = parallel(candidates, o.jobs, |(name, p)| {
-        let r = run_candidate(&parent, name, p, o.shrink_tries, &tmp);
+        let r = run_candidate(&parent, name, p, o.shrink_tries, &tmp, &o.validator);
         gate_runs.fetch_add(r.attempts.len(), Ordering::Relaxed);
         progress(&format!(
             "{}: {} after {} attempt(s)",
@@ -1174,7 +1234,10 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
     let mut contact_sheet = None;
     if o.sheet && !kept_names.is_empty() {
         progress("rendering the contact sheet");
-        let scenes: Vec<PathBuf> = kept_names.iter().map(|n| o.out.join(n).join("scene.toml")).collect();
+        // The parent first, then every kept variant.
+        let scenes: Vec<PathBuf> = std::iter::once(scene_path.to_path_buf())
+            .chain(kept_names.iter().map(|n| o.out.join(n).join("scene.toml")))
+            .collect();
         let refs: Vec<&Path> = scenes.iter().map(PathBuf::as_path).collect();
         let path = o.out.join("contact_sheet.png");
         match crate::sheet::write(&refs, 8, &path) {
@@ -1205,6 +1268,7 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
         candidate_wall_s,
         gate_runs: runs,
         validated_per_minute: validated as f64 / (candidate_wall_s / 60.0).max(1e-9),
+        validated_per_minute_overall: validated as f64 / (wall_s / 60.0).max(1e-9),
         gate_runs_per_minute: runs as f64 / (wall_s / 60.0).max(1e-9),
         contact_sheet,
         jobs: o.jobs,

@@ -184,15 +184,24 @@ fn synthetic_egodex_hands_come_back_as_their_gym_with_a_given_or_estimated_regis
         let truth_rows = rows_of(&truth["rows"]);
         for (label, reg) in [("given", Some(dir.join("episode/registration.json"))), ("estimated", None)] {
             let out = dir.join(format!("imported-{label}"));
-            let done = real2sim::import::egodex(
+            let done = match real2sim::import::egodex(
                 &dir.join("episode/episode.hdf5"),
                 &scene,
                 &out,
                 "auto",
                 reg.as_deref(),
                 Default::default(),
-            )
-            .unwrap_or_else(|e| panic!("{gym} ({label} registration): {e}"));
+            ) {
+                Ok(d) => d,
+                // Gyms without a free object and a target (drawers, doors, pushes) leave nothing
+                // to fit the registration to: the importer must say so, not guess.
+                Err(e) if reg.is_none() && e.to_string().contains("cannot estimate") => {
+                    eprintln!("SYNTHETIC egodex round trip {gym} (estimated registration): refused as expected: {e}");
+                    assert!(!out.exists());
+                    continue;
+                }
+                Err(e) => panic!("{gym} ({label} registration): {e}"),
+            };
             let lead = done.report["hand"]["lead_in_rows"].as_u64().expect("lead") as usize;
             let imported = lockstep::read_demo(&out.join("demo.csv")).expect("demo");
             let e = compare(&gym, &imported, lead, &truth_rows, hz);
