@@ -168,48 +168,46 @@ impl Params {
     }
 }
 
-/// The search ranges of the sweeps and how the levels go outward from the parent.
+/// The sweeps: per parameter and side, the levels tried outward from the parent's value (the
+/// last one is the edge of the search).
+const SWEEPS: [(Factor, &str, &[f64]); 14] = [
+    (Factor::ObjectSize, "size_scale-", &[0.9, 0.8, 0.7, 0.6]),
+    (Factor::ObjectSize, "size_scale+", &[1.1, 1.2, 1.35, 1.5]),
+    (Factor::ObjectPose, "pose_xy_m", &[0.02, 0.05, 0.1, 0.15, 0.2]),
+    (Factor::ObjectPose, "pose_yaw_deg", &[10.0, 25.0, 45.0, 90.0]),
+    (Factor::SupportHeight, "support_dz_m-", &[-0.025, -0.05, -0.1]),
+    (Factor::SupportHeight, "support_dz_m+", &[0.025, 0.05, 0.1]),
+    (Factor::FrictionMass, "friction_scale-", &[0.6, 0.3, 0.1]),
+    (Factor::FrictionMass, "friction_scale+", &[1.5, 2.0]),
+    (Factor::FrictionMass, "mass_scale-", &[0.6, 0.3]),
+    (Factor::FrictionMass, "mass_scale+", &[1.5, 3.0, 10.0]),
+    (Factor::Distractors, "distractors", &[1.0, 2.0, 3.0]),
+    (Factor::Visual, "light_scale-", &[0.4]),
+    (Factor::Visual, "light_scale+", &[1.6]),
+    (Factor::Visual, "hue_deg", &[90.0, 180.0]),
+];
+
+/// One sweep level as params: `axis` (without its side) at `x`, everything else the parent's.
+fn level(axis: &str, x: f64) -> Params {
+    let pose = |xy_m: f64, yaw_deg: f64| Some(PoseDraw { xy_m, yaw_deg, seed: 1, fraction: 1.0 });
+    let mut p = Params::default();
+    match axis.trim_end_matches(['-', '+']) {
+        "size_scale" => p.size_scale = Some(x),
+        "pose_xy_m" => p.pose = pose(x, 0.0),
+        "pose_yaw_deg" => p.pose = pose(0.0, x),
+        "support_dz_m" => p.support_dz_m = Some(x),
+        "friction_scale" => p.friction_scale = Some(x),
+        "mass_scale" => p.mass_scale = Some(x),
+        "distractors" => p.distractors = Some((x as usize, 1)),
+        "light_scale" => p.light_scale = Some(x),
+        "hue_deg" => p.hue_deg = Some(x),
+        _ => {}
+    }
+    p
+}
+
 fn sweep_levels() -> Vec<(Factor, &'static str, Vec<Params>)> {
-    let p = Params::default;
-    let levels = |f: &dyn Fn(f64) -> Params, v: &[f64]| v.iter().map(|x| f(*x)).collect::<Vec<_>>();
-    vec![
-        (Factor::ObjectSize, "size_scale-", levels(&|x| Params { size_scale: Some(x), ..p() }, &[0.9, 0.8, 0.7])),
-        (Factor::ObjectSize, "size_scale+", levels(&|x| Params { size_scale: Some(x), ..p() }, &[1.1, 1.2, 1.3])),
-        (
-            Factor::ObjectPose,
-            "pose_xy_m",
-            levels(
-                &|x| Params { pose: Some(PoseDraw { xy_m: x, yaw_deg: 0.0, seed: 1, fraction: 1.0 }), ..p() },
-                &[0.02, 0.05, 0.1],
-            ),
-        ),
-        (
-            Factor::ObjectPose,
-            "pose_yaw_deg",
-            levels(
-                &|x| Params { pose: Some(PoseDraw { xy_m: 0.0, yaw_deg: x, seed: 1, fraction: 1.0 }), ..p() },
-                &[10.0, 25.0, 45.0],
-            ),
-        ),
-        (
-            Factor::SupportHeight,
-            "support_dz_m-",
-            levels(&|x| Params { support_dz_m: Some(x), ..p() }, &[-0.025, -0.05]),
-        ),
-        (Factor::SupportHeight, "support_dz_m+", levels(&|x| Params { support_dz_m: Some(x), ..p() }, &[0.025, 0.05])),
-        (Factor::FrictionMass, "friction_scale-", levels(&|x| Params { friction_scale: Some(x), ..p() }, &[0.6, 0.3])),
-        (Factor::FrictionMass, "friction_scale+", levels(&|x| Params { friction_scale: Some(x), ..p() }, &[1.5, 2.0])),
-        (Factor::FrictionMass, "mass_scale-", levels(&|x| Params { mass_scale: Some(x), ..p() }, &[0.6, 0.3])),
-        (Factor::FrictionMass, "mass_scale+", levels(&|x| Params { mass_scale: Some(x), ..p() }, &[1.5, 3.0])),
-        (
-            Factor::Distractors,
-            "distractors",
-            levels(&|x| Params { distractors: Some((x as usize, 1)), ..p() }, &[1.0, 2.0, 3.0]),
-        ),
-        (Factor::Visual, "light_scale-", levels(&|x| Params { light_scale: Some(x), ..p() }, &[0.4])),
-        (Factor::Visual, "light_scale+", levels(&|x| Params { light_scale: Some(x), ..p() }, &[1.6])),
-        (Factor::Visual, "hue_deg", levels(&|x| Params { hue_deg: Some(x), ..p() }, &[90.0, 180.0])),
-    ]
+    SWEEPS.iter().map(|(f, axis, v)| (*f, *axis, v.iter().map(|x| level(axis, *x)).collect())).collect()
 }
 
 /// The value a sweep varies, read back from its params.
@@ -920,15 +918,15 @@ fn failed_checks(ev: &Evidence) -> String {
 /// Widths of the signature's entries for the near-duplicate test.
 fn widths(r: &Ranges) -> Vec<f64> {
     let w = |k: &str, fallback: f64| r.get(k).map(|v| v[1] - v[0]).filter(|v| *v > 1e-9).unwrap_or(fallback);
-    let xy = 2.0 * w("pose_xy_m", 0.1);
+    let xy = 2.0 * w("pose_xy_m", 0.2);
     vec![
-        w("size_scale", 0.6),
+        w("size_scale", 0.9),
         xy,
         xy,
-        2.0 * w("pose_yaw_deg", 45.0),
-        w("support_dz_m", 0.1),
-        w("friction_scale", 1.7),
-        w("mass_scale", 2.7),
+        2.0 * w("pose_yaw_deg", 90.0),
+        w("support_dz_m", 0.2),
+        w("friction_scale", 1.9),
+        w("mass_scale", 9.7),
         3.0,
         w("light_scale", 1.2),
         1.2,
