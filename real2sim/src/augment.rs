@@ -771,14 +771,15 @@ fn run_candidate(
     name: String,
     params: Params,
     tries: usize,
-    pool_tmp: &Path,
+    pool_dir: &Path,
     validator: &Validator,
 ) -> Outcome {
     let mut attempts = Vec::new();
     let mut p = params.clone();
     let factors = params.factors();
     for shrinks in 0..=tries {
-        let dir = pool_tmp.join(&name);
+        // Built beside where it stays: its scene's relative paths are rebased for that folder.
+        let dir = pool_dir.join(&name);
         let _ = std::fs::remove_dir_all(&dir);
         let result = build(parent, &p, &dir).and_then(|b| {
             let ev = validator(&b.staging.dir)?;
@@ -1040,8 +1041,6 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
         tcp_world,
         world_from_base,
     };
-    let tmp = o.out.join(".work");
-    std::fs::create_dir_all(&tmp).map_err(Error::io(&tmp))?;
     let gate_runs = AtomicUsize::new(1);
 
     // 1. Sweeps: each factor alone, outward from the parent.
@@ -1063,7 +1062,7 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
             plan[i].0.name(),
             plan[i].1.replace(['-', '+'], if plan[i].1.ends_with('-') { "lo" } else { "hi" })
         );
-        let r = run_candidate(&parent, name, p.clone(), 0, &tmp.join("sweeps"), &o.validator);
+        let r = run_candidate(&parent, name, p.clone(), 0, &o.out.join("sweeps"), &o.validator);
         gate_runs.fetch_add(r.attempts.len(), Ordering::Relaxed);
         (i, k, p, r)
     });
@@ -1085,12 +1084,6 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
                 best = v;
             } else {
                 open = false;
-            }
-            // Sweep variants are evidence, not pool members.
-            if let Some(d) = &r.staged {
-                let dest = o.out.join("sweeps").join(&r.name);
-                let _ = std::fs::create_dir_all(o.out.join("sweeps"));
-                let _ = std::fs::rename(d, &dest);
             }
         }
         let e = feasible.entry(param.clone()).or_insert([parent_value(&param); 2]);
@@ -1169,7 +1162,7 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
     }
     progress(&format!("validating {} candidates on {} job(s)", candidates.len(), o.jobs));
     let outcomes = parallel(candidates, o.jobs, |(name, p)| {
-        let r = run_candidate(&parent, name, p, o.shrink_tries, &tmp, &o.validator);
+        let r = run_candidate(&parent, name, p, o.shrink_tries, &o.out, &o.validator);
         gate_runs.fetch_add(r.attempts.len(), Ordering::Relaxed);
         progress(&format!(
             "{}: {} after {} attempt(s)",
@@ -1197,16 +1190,13 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
             kept.push(r);
         }
     }
-    // The pool: kept variants moved in; everything else stays out.
-    let mut kept_names = Vec::new();
-    for r in &kept {
+    // The pool keeps the distinct variants; the near-duplicates' folders go.
+    for r in outcomes.iter().filter(|r| dedup.contains(&r.name)) {
         if let Some(d) = &r.staged {
-            let dest = o.out.join(&r.name);
-            std::fs::rename(d, &dest).map_err(Error::io(&dest))?;
-            kept_names.push(r.name.clone());
+            std::fs::remove_dir_all(d).map_err(Error::io(d))?;
         }
     }
-    let _ = std::fs::remove_dir_all(&tmp);
+    let kept_names: Vec<String> = kept.iter().filter(|r| r.staged.is_some()).map(|r| r.name.clone()).collect();
     let mut per_factor: BTreeMap<String, BTreeMap<String, usize>> = BTreeMap::new();
     for r in &outcomes {
         for f in &r.factors {
