@@ -9,7 +9,9 @@
 //!   pose written into the variant's scene;
 //! - `support_height`: the table top and everything standing on it raised or lowered relative to
 //!   the robot's mount;
-//! - `friction_mass`: the object's friction and mass scaled;
+//! - `friction_mass`: the object's friction and mass scaled (MuJoCo takes the larger friction of
+//!   the two geoms in contact, so lowering it below the fingers' 1.2 and the table's 0.8 does
+//!   little);
 //! - `distractors`: one to three small objects placed by the same placement draw, redrawn
 //!   (bounded) while one would stand within 6 cm of the demonstration's low TCP path;
 //! - `visual`: light intensity and position, the objects' hue and the table's shade. Visual
