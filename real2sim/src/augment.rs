@@ -6,7 +6,8 @@
 //!   stays on its support; the mass is its own factor);
 //! - `object_pose`: the object moved in x, y and yaw by `sim_host::placement` (a seeded draw
 //!   that keeps 1 cm from all other collision geometry, on the table, within reach), the moved
-//!   pose written into the variant's scene;
+//!   pose written into the variant's scene; an object that starts in a holder fixture (a plate
+//!   in its stand) is drawn without the holder, and the holder moves with it;
 //! - `support_height`: the table top and everything standing on it raised or lowered relative to
 //!   the robot's mount;
 //! - `friction_mass`: the object's friction and mass scaled (MuJoCo takes the larger friction of
@@ -284,6 +285,8 @@ struct Parent {
     source_kind: String,
     trace_sha256: String,
     object: String,
+    /// A fixture the object starts in (a holder), moved along with it.
+    carrier: Option<String>,
     /// TCP per row, world frame.
     tcp_world: Vec<Isometry3<f64>>,
     world_from_base: Isometry3<f64>,
@@ -432,8 +435,9 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
     let mut diff = serde_json::Map::new();
     let mut obj_change = Change::none();
     if let Some(s) = params.size_scale {
-        let (lo, _) =
-            gym::object_bounds(spec).ok_or_else(|| err(format!("object '{obj}' has no primitive bounds to scale")))?;
+        // The lowest point (world vertical) stays where it was: the object still stands on its support.
+        let (lo, _) = gym::vertical_extent(spec)
+            .ok_or_else(|| err(format!("object '{obj}' has no primitive bounds to scale")))?;
         let o = object_mut(&mut t, &obj).ok_or_else(|| err("object vanished"))?;
         if let Some(v) = o.get_mut("size_m") {
             scale_array(v, s);
@@ -451,11 +455,11 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
             }
         }
         let mut p = spec.position_m;
-        p[2] += (1.0 - s) * lo[2];
+        p[2] += (1.0 - s) * lo;
         o.insert("position_m".into(), farr(&p));
         obj_change = Change {
-            moved: Isometry3::translation(0.0, 0.0, (1.0 - s) * lo[2]),
-            scale: Some((s, Point3::from(spec.position_m), lo[2])),
+            moved: Isometry3::translation(0.0, 0.0, (1.0 - s) * lo),
+            scale: Some((s, Point3::from(spec.position_m), lo)),
         };
         diff.insert("size_scale".into(), json!({"parent": 1.0, "value": s}));
     }
@@ -495,7 +499,15 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
     }
     let mut pose_move = None;
     if let Some(d) = &params.pose {
-        let placed = draw_placement(&staging, &t, vec![obj.clone()], d.xy_m, d.yaw_deg, d.seed)?;
+        // An object that starts in a holder moves with it: the draw is made without the holder
+        // (it would otherwise be within the clearance of any place), the holder follows.
+        let mut draw_scene = t.clone();
+        if let Some(c) = &parent.carrier {
+            if let Some(fx) = draw_scene.get_mut("fixtures").and_then(|v| v.as_array_mut()) {
+                fx.retain(|f| f.get("name").and_then(|n| n.as_str()) != Some(c.as_str()));
+            }
+        }
+        let placed = draw_placement(&staging, &draw_scene, vec![obj.clone()], d.xy_m, d.yaw_deg, d.seed)?;
         let (_, pos, quat) =
             placed.into_iter().find(|p| p.0 == obj).ok_or_else(|| err("the draw did not move the object"))?;
         let o = object_mut(&mut t, &obj).ok_or_else(|| err("object vanished"))?;
@@ -514,6 +526,24 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
         ) * Isometry3::from_parts(Translation3::from(-origin.coords), UnitQuaternion::identity());
         let shift = Isometry3::translation(new_p[0] - written[0], new_p[1] - written[1], 0.0);
         obj_change.moved = shift * turn * obj_change.moved;
+        if let Some(c) = &parent.carrier {
+            let moved = shift * turn;
+            let fx = t
+                .get_mut("fixtures")
+                .and_then(|v| v.as_array_mut())
+                .and_then(|a| a.iter_mut().find(|f| f.get("name").and_then(|n| n.as_str()) == Some(c.as_str())))
+                .and_then(|f| f.as_table_mut())
+                .ok_or_else(|| err(format!("holder '{c}' vanished")))?;
+            let fp = fx.get("position_m").and_then(arr3).unwrap_or([0.0; 3]);
+            let fq = rgba_of(fx.get("quat_wxyz"), [1.0, 0.0, 0.0, 0.0]);
+            let new = moved * gym::pose_wxyz(fp, fq);
+            let (v, q) = (new.translation.vector, new.rotation);
+            fx.insert("position_m".into(), farr(&[v.x, v.y, v.z]));
+            fx.insert("quat_wxyz".into(), farr(&[q.w, q.i, q.j, q.k]));
+            let prior = changes.get(c).map(|ch| ch.moved).unwrap_or(Isometry3::identity());
+            changes.insert(c.clone(), Change { moved: moved * prior, scale: None });
+            diff.insert("holder_moved_with_object".into(), json!(c));
+        }
         pose_move = Some([new_p[0] - written[0], new_p[1] - written[1], dyaw.to_degrees()]);
         diff.insert(
             "object_pose".into(),
@@ -1029,6 +1059,16 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
         Some(r) => (r.source, r.source_kind),
         None => (events::source_grasps(&rows, scene.task.demonstration_hz), "demonstration gripper column".to_string()),
     };
+    let carrier = pev
+        .native_events
+        .iter()
+        .find(|e| {
+            e.kind == events::Kind::Support
+                && e.subject == object
+                && e.onset_s < 0.05
+                && scene.fixtures.iter().any(|f| f.name == e.other && f.joint.is_none())
+        })
+        .map(|e| e.other.clone());
     let parent = Parent {
         scene_path: scene_path.to_path_buf(),
         dir_name: dir_name.clone(),
@@ -1040,6 +1080,7 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
         source_kind,
         trace_sha256: pev.trace_sha256.clone(),
         object,
+        carrier,
         tcp_world,
         world_from_base,
     };

@@ -90,21 +90,28 @@ pub fn entity_centre(scene: &Scene, name: &str) -> Option<[f64; 3]> {
     Some([p.x, p.y, p.z])
 }
 
-/// Height of the highest point of an object's colliding parts at its start pose, m (world).
-pub fn entity_top(scene: &Scene, name: &str) -> Option<f64> {
-    let o = scene.objects.iter().find(|o| o.name == name)?;
+/// Lowest and highest point of an object's colliding parts below and above its origin, in the
+/// world's vertical at its start orientation, m.
+pub fn vertical_extent(o: &ObjectSpec) -> Option<(f64, f64)> {
     let (lo, hi) = object_bounds(o)?;
-    let pose = pose_wxyz(o.position_m, o.quat_wxyz);
-    (0..8)
+    let rot = pose_wxyz([0.0; 3], o.quat_wxyz).rotation;
+    let z: Vec<f64> = (0..8)
         .map(|c| {
             let p = Point3::new(
                 if c & 1 == 0 { lo[0] } else { hi[0] },
                 if c & 2 == 0 { lo[1] } else { hi[1] },
                 if c & 4 == 0 { lo[2] } else { hi[2] },
             );
-            (pose * p).z
+            (rot * p).z
         })
-        .reduce(f64::max)
+        .collect();
+    Some((z.iter().cloned().fold(f64::INFINITY, f64::min), z.iter().cloned().fold(f64::NEG_INFINITY, f64::max)))
+}
+
+/// Height of the highest point of an object's colliding parts at its start pose, m (world).
+pub fn entity_top(scene: &Scene, name: &str) -> Option<f64> {
+    let o = scene.objects.iter().find(|o| o.name == name)?;
+    vertical_extent(o).map(|(_, hi)| o.position_m[2] + hi)
 }
 
 fn mid(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
