@@ -786,7 +786,7 @@ fn adapt(
             end += 1;
         }
         let seed: [f64; 7] = std::array::from_fn(|j| parent.rows[idx[start]][j]);
-        let sol = crate::retarget::solve_path(&parent.robot, safety, &targets[start..end], seed)
+        let (sol, _) = crate::retarget::solve_path(&parent.robot, safety, &targets[start..end], seed, 0.0)
             .map_err(|(k, why)| (idx[start + k], why))?;
         for (k, qs) in sol.iter().enumerate() {
             let r = idx[start + k];

@@ -80,6 +80,8 @@ fn write_gym(
     let scene_file = staging.write("scene.toml", text.as_bytes())?;
     let demo = staging.dir.join("demo.csv");
     lockstep::write_demo(&demo, rows)?;
+    // From here on the rows as written (6 decimals): the events must be those of the gym on disk.
+    let rows = &lockstep::read_demo(&demo)?;
     staging.write("record.json", &serde_json::to_vec(record).map_err(|e| Error::Episode(e.into()))?)?;
     // The native events, from a replay of what we just wrote.
     let scene = Scene::load(&scene_file).map_err(|e| Error::Episode(e.into()))?;
@@ -105,8 +107,11 @@ pub fn droid(episode: &Path, scene_path: &Path, out: &Path, gate: droid::FkGate)
     let (record, fk) = droid::read(episode, &robot, &safety, gate)?;
     let Some(track) = &record.robot else { return Err(Error::Episode(anyhow::anyhow!("DROID record without robot"))) };
     let hz = scene.task.demonstration_hz;
-    // Closed above 0.6, open below 0.4 of the way: switch times from the source.
-    let closed = resample::hysteresis(&track.gripper_closed, 0.6, 0.4);
+    // Switch times from the source: a command is closed above 0.75 and open again below 0.5
+    // (the demonstrations' +0.5 / 0 on the -1..1 scale); a measured opening stops at the object,
+    // so there a rise above 0.3 closes and a fall below 0.15 opens.
+    let (on, off) = if track.gripper_source.starts_with("action/") { (0.75, 0.5) } else { (0.3, 0.15) };
+    let closed = resample::hysteresis(&track.gripper_closed, on, off);
     let plan = resample::plan(&record.t_s, &closed, hz);
     let frames: Vec<[f64; 8]> = track
         .joints_rad
@@ -139,7 +144,7 @@ pub fn droid(episode: &Path, scene_path: &Path, out: &Path, gate: droid::FkGate)
         &rows,
         Some(([first[0], first[1], first[2], first[3], first[4], first[5], first[6]], first[7])),
         source,
-        "droid gripper (hysteresis 0.6 / 0.4 of closed)",
+        &format!("droid {} (closed above {on}, open below {off})", track.gripper_source),
         report,
     )
 }

@@ -7,10 +7,12 @@
 //!   grip alike: the one nearer the previous frame is taken (the first frame: the one whose IK
 //!   solution is nearer the scene's start joints).
 //! - **Aperture** |I − T| with hysteresis: closed below `close_fraction` of the way from the
-//!   episode's small (10th percentile) to its large (90th percentile) aperture, open again above
-//!   `open_fraction`; a state lasting less than `min_state_s` is ignored; each switch then moves
-//!   back to where the (smoothed) aperture began to fall or rise. Under 1 cm between the two:
-//!   the hand never grasps.
+//!   episode's small (2nd percentile of the smoothed aperture) to its large (98th) aperture,
+//!   open again above `open_fraction`; a state lasting less than `min_state_s` is ignored;
+//!   each switch then moves back to where the (smoothed) aperture began to fall or rise. Under 1 cm between the two:
+//!   the hand never grasps. Closed is +1; open, the gripper follows the smoothed aperture's
+//!   place between the two (−1 wide open … 0 half way; the widest of the next 0.3 s, so a
+//!   release opens at once), so a part-open hand stays part open.
 //! - Frames whose three points are not all at `min_confidence` are dropped, never interpolated
 //!   from; the resampling interpolates between the kept frames around them.
 //! - **Registration** (ARKit world → robot base): given (`--registration`, a 4×4), or estimated:
@@ -23,12 +25,14 @@
 //! - **Object-relative**: the motion is kept relative to what it acts on: the anchors (the
 //!   object up to its grasp, the target from the release) are written into `events.json`, and
 //!   augmentation re-solves the motion against moved anchors with the same IK.
-//! - **IK** row by row with the project's solver (joint limits shrunk by 0.05 rad), seeded by the
-//!   previous row; every row must pass the scene's collision and workspace checks and move no
-//!   joint more than 0.25 rad from the row before.
+//! - **IK** row by row with the project's solver (joint limits shrunk by 0.05 rad, 0.5 mm and
+//!   0.005 rad tolerances), seeded by the previous row; every row must pass the scene's
+//!   collision and workspace checks (a pose that would bring the gripper within the margin + 3 mm of
+//!   the table is raised by up to 1 cm first: a human hand may rest on it) and move no joint more than
+//!   0.25 rad from the row before.
 
 use controllers::safety::SafetyChecks;
-use controllers::{IkConfig, IkSolver, RobotModel};
+use controllers::{IkConfig, IkSolver, RobotModel, Violation};
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
@@ -90,6 +94,10 @@ pub struct Pinches {
     pub world_from_pinch: Vec<Isometry3<f64>>,
     pub aperture_m: Vec<f64>,
     pub closed: Vec<bool>,
+    /// The gripper per kept frame: +1 closed; open, the smoothed aperture's place between the
+    /// episode's small and large aperture (−1 wide open … 0 half way), so a part-open hand
+    /// stays part open.
+    pub gripper: Vec<f64>,
     pub close_below_m: f64,
     pub open_above_m: f64,
 }
@@ -141,10 +149,13 @@ pub fn pinches(hand: &HandInWorld, p: HandParams, rate_hz: f64) -> Result<Pinche
             format!("only {} frames give a pinch frame; the hand is never seen well enough", frames.len()),
         ));
     }
-    let mut sorted = aperture_m.clone();
+    let smooth = smoothed(&aperture_m, &t_s, p.smooth_half_window_s);
+    // The hand's own small and large aperture: near the extremes of the smoothed aperture, so a
+    // hand closed (or open) nearly all the time still shows both.
+    let mut sorted = smooth.clone();
     sorted.sort_by(f64::total_cmp);
     let pct = |q: f64| sorted[((sorted.len() - 1) as f64 * q).round() as usize];
-    let (small, large) = (pct(0.1), pct(0.9));
+    let (small, large) = (pct(0.02), pct(0.98));
     let (close_below_m, open_above_m, closed) = if large - small < 0.01 {
         (f64::NAN, f64::NAN, vec![false; aperture_m.len()])
     } else {
@@ -154,24 +165,34 @@ pub fn pinches(hand: &HandInWorld, p: HandParams, rate_hz: f64) -> Result<Pinche
         let neg: Vec<f64> = aperture_m.iter().map(|a| -a).collect();
         let raw = resample::hysteresis(&neg, -close, -open);
         let mut closed = resample::debounce(&raw, &t_s, p.min_state_s);
-        onsets(&mut closed, &aperture_m, &t_s, p.smooth_half_window_s);
+        onsets(&mut closed, &smooth);
         (close, open, closed)
     };
-    Ok(Pinches { frames, t_s, world_from_pinch, aperture_m, closed, close_below_m, open_above_m })
+    // Open: where the hand is opening to (the widest smoothed aperture of the next 0.3 s of the
+    // same state), so a release opens the gripper at once rather than along the hand's ramp.
+    let gripper = (0..closed.len())
+        .map(|k| {
+            if closed[k] {
+                return 1.0;
+            }
+            if large - small < 0.01 {
+                return -1.0;
+            }
+            let a = (k..closed.len())
+                .take_while(|&j| !closed[j] && t_s[j] - t_s[k] <= 0.3)
+                .map(|j| smooth[j])
+                .fold(smooth[k], f64::max);
+            (1.0 - 2.0 * (a - small) / (large - small)).clamp(-1.0, 0.0)
+        })
+        .collect();
+    Ok(Pinches { frames, t_s, world_from_pinch, aperture_m, closed, gripper, close_below_m, open_above_m })
 }
 
 /// Moves each switch back to where the hand began to close (or open): the start of the run
 /// over which the smoothed aperture kept falling (rising) by more than 1 mm a frame. The
 /// thresholds say that the hand closed; this says when it started to.
-fn onsets(closed: &mut [bool], aperture_m: &[f64], t_s: &[f64], half_window_s: f64) {
+fn onsets(closed: &mut [bool], smooth: &[f64]) {
     let n = closed.len();
-    let smooth: Vec<f64> = (0..n)
-        .map(|k| {
-            let near: Vec<f64> =
-                (0..n).filter(|&j| (t_s[j] - t_s[k]).abs() <= half_window_s).map(|j| aperture_m[j]).collect();
-            near.iter().sum::<f64>() / near.len() as f64
-        })
-        .collect();
     let mut last = 0;
     for k in 1..n {
         if closed[k] == closed[k - 1] {
@@ -188,6 +209,17 @@ fn onsets(closed: &mut [bool], aperture_m: &[f64], t_s: &[f64], half_window_s: f
     }
 }
 
+/// Each value averaged with those within `half_window_s` of it.
+fn smoothed(v: &[f64], t_s: &[f64], half_window_s: f64) -> Vec<f64> {
+    (0..v.len())
+        .map(|k| {
+            let near: Vec<f64> =
+                (0..v.len()).filter(|&j| (t_s[j] - t_s[k]).abs() <= half_window_s).map(|j| v[j]).collect();
+            near.iter().sum::<f64>() / near.len() as f64
+        })
+        .collect()
+}
+
 /// Estimates base-from-world (see the module notes) from the first grasp and release.
 pub fn estimate_registration(
     file: &str,
@@ -197,9 +229,13 @@ pub fn estimate_registration(
     let roles = crate::gym::roles(scene);
     let why_not = |why: String| Error::input(file, "transforms (registration)", None, why);
     let (Some(object), Some(target)) = (roles.object.clone(), roles.target.clone()) else {
+        let what = match &roles.object {
+            Some(o) => format!("no target for '{o}'"),
+            None => "no free object to hold".into(),
+        };
         return Err(why_not(format!(
-            "cannot estimate the world-to-base registration: the scene's success rules name no object and target \
-             ({roles:?}); pass --registration FILE"
+            "cannot estimate the world-to-base registration: the scene's success rules name {what} (nothing to fit the \
+             grasp and release to); pass --registration FILE"
         )));
     };
     let grasps = pinches.grasps();
@@ -283,45 +319,73 @@ pub fn smooth(poses: &[Isometry3<f64>], t_s: &[f64], state: &[bool], half_window
         .collect()
 }
 
+/// IK for retargeted and adapted paths: joint ranges shrunk by 0.05 rad, 0.5 mm and 0.005 rad
+/// (tracked hands are noisier than that; the solver's default 10 µm would refuse poses a hair
+/// from the shrunk limits).
+fn path_ik() -> IkConfig {
+    IkConfig { limit_margin_rad: 0.05, position_tolerance_m: 5e-4, rotation_tolerance_rad: 5e-3, ..IkConfig::default() }
+}
+
 /// Solves TCP poses (robot base frame) into joint rows, each seeded with the one before; the
-/// first with `seed`. On failure: the row and why.
+/// first with `seed`. A pose whose solution comes too near the table is raised, 2 mm at a time,
+/// by at most `lift_max_m` (a human hand may rest on the table; the gripper must not): the rows
+/// raised are counted. On failure: the row and why.
 pub fn solve_path(
     robot: &RobotModel,
     safety: &SafetyChecks,
     tcp: &[Isometry3<f64>],
     seed: [f64; 7],
-) -> std::result::Result<Vec<[f64; 7]>, (usize, String)> {
-    let ik = IkSolver::new(robot, IkConfig { limit_margin_rad: 0.05, ..IkConfig::default() })
-        .map_err(|e| (0, format!("IK: {e}")))?;
+    lift_max_m: f64,
+) -> std::result::Result<(Vec<[f64; 7]>, usize), (usize, String)> {
+    let ik = IkSolver::new(robot, path_ik()).map_err(|e| (0, format!("IK: {e}")))?;
+    let mut roomy = safety.clone();
+    roomy.margin_m += 0.003;
     let mut q = seed;
     let mut out = Vec::with_capacity(tcp.len());
+    let mut lifted = 0;
     for (row, target) in tcp.iter().enumerate() {
-        let sol = ik.solve(target, &q).map_err(|e| (row, format!("IK: {e}")))?;
-        if !sol.ok {
-            let p = target.translation.vector;
-            return Err((
-                row,
-                format!(
-                    "unreachable: no IK solution within the joint limits for the TCP at [{:.3}, {:.3}, {:.3}] m (best {:.1} mm, {:.1} deg away)",
-                    p.x,
-                    p.y,
-                    p.z,
-                    sol.position_error_m * 1e3,
-                    sol.rotation_error_rad.to_degrees()
-                ),
-            ));
+        let mut lift = 0.0;
+        let sol = loop {
+            let raised = Isometry3::translation(0.0, 0.0, lift) * target;
+            let sol = ik.solve(&raised, &q).map_err(|e| (row, format!("IK: {e}")))?;
+            if !sol.ok {
+                let p = raised.translation.vector;
+                return Err((
+                    row,
+                    format!(
+                        "unreachable: no IK solution within the joint limits for the TCP at [{:.3}, {:.3}, {:.3}] m \
+                         (best {:.1} mm, {:.1} deg away)",
+                        p.x,
+                        p.y,
+                        p.z,
+                        sol.position_error_m * 1e3,
+                        sol.rotation_error_rad.to_degrees()
+                    ),
+                ));
+            }
+            // Lifted rows keep 3 mm more than the margin, so the path between rows clears too.
+            let near_table =
+                lift_max_m > 0.0 && matches!(roomy.check(&sol.q), Err(Violation::Obstacle { obstacle: "table", .. }));
+            match safety.check(&sol.q) {
+                Ok(()) if !near_table => break sol,
+                Ok(()) | Err(Violation::Obstacle { obstacle: "table", .. }) if lift + 0.002 <= lift_max_m + 1e-12 => {
+                    lift += 0.002
+                }
+                Ok(()) => break sol,
+                Err(v) => return Err((row, format!("the scene's checks refuse the solution: {v}"))),
+            }
+        };
+        if lift > 0.0 {
+            lifted += 1;
         }
         let jump = (0..7).map(|j| (sol.q[j] - q[j]).abs()).fold(0.0, f64::max);
         if row > 0 && jump > 0.25 {
             return Err((row, format!("the IK solution jumps {jump:.2} rad from the row before (limit 0.25)")));
         }
-        if let Err(v) = safety.check(&sol.q) {
-            return Err((row, format!("the scene's checks refuse the solution: {v}")));
-        }
         q = sol.q;
         out.push(q);
     }
-    Ok(out)
+    Ok((out, lifted))
 }
 
 /// A joint-space move from `a` to `b` at `hz` with a quintic time law, its duration set so no
@@ -349,6 +413,8 @@ pub struct HandReport {
     pub close_below_m: f64,
     pub open_above_m: f64,
     pub lead_in_rows: usize,
+    /// Rows raised (by up to 1 cm) to keep the gripper off the table.
+    pub lifted_rows: usize,
     /// Gripper switches in demonstration time (s from row 0): (time, closed).
     pub switches_s: Vec<(f64, bool)>,
 }
@@ -395,8 +461,7 @@ pub fn retarget(
     let start_q = scene.robot.initial_joints_rad;
     // The first frame: the sign of y whose solution is nearer the start joints.
     let first_alt = [tcp[0], tcp[0] * Isometry3::from_parts(Translation3::identity(), flip)];
-    let ik = IkSolver::new(robot, IkConfig { limit_margin_rad: 0.05, ..IkConfig::default() })
-        .map_err(|e| Error::Episode(anyhow::anyhow!("IK: {e}")))?;
+    let ik = IkSolver::new(robot, path_ik()).map_err(|e| Error::Episode(anyhow::anyhow!("IK: {e}")))?;
     let cost = |t: &Isometry3<f64>| match ik.solve(t, &start_q) {
         Ok(s) if s.ok => (0..7).map(|j| (s.q[j] - start_q[j]).abs()).sum::<f64>(),
         _ => f64::INFINITY,
@@ -421,11 +486,10 @@ pub fn retarget(
             Isometry3::from_parts(Translation3::from(pos), a.rotation.slerp(&c.rotation, b.w))
         })
         .collect();
-    let grip: Vec<f64> =
-        plan.iter().map(|b| if pin.closed[if b.w < 0.5 { b.a } else { b.b }] { 1.0 } else { -1.0 }).collect();
+    let grip: Vec<f64> = plan.iter().map(|b| (1.0 - b.w) * pin.gripper[b.a] + b.w * pin.gripper[b.b]).collect();
     let joints = egodex::pinch_joints(&hand.side);
     let field = format!("transforms/{} (pinch frame)", joints.join("+"));
-    let solved = solve_path(robot, safety, &poses, start_q).map_err(|(row, why)| {
+    let (solved, lifted_rows) = solve_path(robot, safety, &poses, start_q, 0.01).map_err(|(row, why)| {
         let b = plan[row];
         Error::input(&hand.file, &field, Some(pin.frames[if b.w < 0.5 { b.a } else { b.b }]), why)
     })?;
@@ -487,6 +551,7 @@ pub fn retarget(
         close_below_m: pin.close_below_m,
         open_above_m: pin.open_above_m,
         lead_in_rows,
+        lifted_rows,
         switches_s: resample::switches(&pin.closed, &t_s).into_iter().map(|(t, s)| (t + offset_s, s)).collect(),
     };
     let _ = Pose::from_iso;

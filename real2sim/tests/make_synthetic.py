@@ -203,10 +203,10 @@ def egodex(gym: str, out: str, seed: int, brk: Optional[str]) -> None:
     n = len(t30)
     q = interp_rows(t30, t20, rows[:, :7])
     tcp = Chain(urdf, scene["robot"].get("tcp_link", "hand_tcp"))
-    # The hand's aperture follows the gripper command with a 0.3 s ramp: 8.5 cm open, 4.5 cm
-    # pinched (the fingertips rest on the object's sides).
+    # The hand's aperture follows the gripper command with a 0.3 s ramp: 8.5 cm wide open, 4.5 cm
+    # pinched (the fingertips rest on the object's sides), part open in between (-0.2: 6.9 cm).
     cmd = hold(t30, hz, rows[:, 7])
-    target = np.where(cmd > 0.0, 0.045, 0.085)
+    target = np.where(cmd > 0.0, 0.045, 0.045 + 0.5 * (1.0 - cmd) * 0.04)
     aperture = np.zeros(n)
     aperture[0] = target[0]
     for k in range(1, n):
