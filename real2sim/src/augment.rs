@@ -9,7 +9,7 @@
 //!   pose written into the variant's scene; an object that starts in a holder fixture (a plate
 //!   in its stand) is drawn without the holder, and the holder moves with it;
 //! - `support_height`: the table top and everything standing on it raised or lowered relative to
-//!   the robot's mount;
+//!   the robot's mount (success rules in world heights rise with it);
 //! - `friction_mass`: the object's friction and mass scaled (MuJoCo takes the larger friction of
 //!   the two geoms in contact, so lowering it below the fingers' 1.2 and the table's 0.8 does
 //!   little);
@@ -469,6 +469,43 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
                 a[2] += dz;
                 *top = farr(&a);
             }
+        }
+        // Success rules in world heights (`past` along z, `inside` a world box) rise with the
+        // table: the task is the same relative to it.
+        let mut shifted = 0;
+        for rule in t
+            .get_mut("task")
+            .and_then(|v| v.get_mut("success"))
+            .and_then(|v| v.as_array_mut())
+            .into_iter()
+            .flatten()
+            .filter_map(|r| r.as_table_mut())
+        {
+            match rule.get("kind").and_then(|k| k.as_str()) {
+                Some("past") if rule.get("axis").and_then(|a| a.as_integer()) == Some(2) => {
+                    for key in ["above", "below"] {
+                        if let Some(v) =
+                            rule.get(key).and_then(|v| v.as_float().or_else(|| v.as_integer().map(|n| n as f64)))
+                        {
+                            rule.insert(key.into(), toml::Value::Float(v + dz));
+                            shifted += 1;
+                        }
+                    }
+                }
+                Some("inside") => {
+                    for key in ["min_m", "max_m"] {
+                        if let Some(mut a) = rule.get(key).and_then(arr3) {
+                            a[2] += dz;
+                            rule.insert(key.into(), farr(&a));
+                            shifted += 1;
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+        if shifted > 0 {
+            diff.insert("success_heights_shifted_m".into(), json!({"values": shifted, "by": dz}));
         }
         for key in ["objects", "fixtures"] {
             for item in t.get_mut(key).and_then(|v| v.as_array_mut()).into_iter().flatten() {
