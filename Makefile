@@ -21,12 +21,12 @@ export PYO3_BUILD_EXTENSION_MODULE := 1
 export PYO3_ENVIRONMENT_SIGNATURE = $(shell $(PYO3_PYTHON) -c 'import sys; v = sys.version_info; \
   print(f"{sys.implementation.name}-{v.major}.{v.minor}-{64 if sys.maxsize > 2**32 else 32}bit")' 2>/dev/null)
 
-.PHONY: demo test deps venv build robo bench-tick clean
+.PHONY: demo test deps venv build robo gym-wheel bench-tick clean
 
 demo: robo
 	scripts/demo.sh
 
-test: robo
+test: robo gym-wheel
 	scripts/test.sh
 
 deps: $(STAMPS)/deps
@@ -35,7 +35,7 @@ $(STAMPS)/deps: scripts/install-deps.sh
 	@mkdir -p $(STAMPS) && touch $@
 
 venv: $(STAMPS)/venv
-$(STAMPS)/venv: requirements.txt fci/franka-sim/requirements.txt scripts/setup-venv.sh $(STAMPS)/deps
+$(STAMPS)/venv: requirements.txt requirements-ray.txt fci/franka-sim/requirements.txt scripts/setup-venv.sh $(STAMPS)/deps
 	scripts/setup-venv.sh
 	@mkdir -p $(STAMPS) && touch $@
 
@@ -43,10 +43,17 @@ $(STAMPS)/venv: requirements.txt fci/franka-sim/requirements.txt scripts/setup-v
 build: venv
 	cargo build --release --workspace --locked
 
-# The Python extensions: `robo` (agents) and `r2g_camera` (the camera host's publisher).
+# The Python extensions: `robo` (agents), `r2g_camera` (the camera host's publisher) and `r2g_gym`
+# (gymnasium environments).
 robo: build
 	VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH $(VENV)/bin/maturin develop --release --locked -m robo/Cargo.toml
 	VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH $(VENV)/bin/maturin develop --release --locked -m camera-host/Cargo.toml
+	VIRTUAL_ENV=$(CURDIR)/$(VENV) PATH=$(CURDIR)/$(VENV)/bin:$$PATH $(VENV)/bin/maturin develop --release --locked -m gym-env/Cargo.toml
+
+# The r2g_gym wheel for users' own venvs, and a wheelhouse of its dependencies (the test that
+# installs it into a fresh venv runs offline).
+gym-wheel: robo
+	scripts/gym-wheel.sh
 
 bench-tick: build
 	target/release/r2g bench tick --seconds 10

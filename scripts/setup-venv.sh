@@ -5,6 +5,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 [ -x .venv/bin/python ] || python3 -m venv .venv
 .venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt
+.venv/bin/python -m pip install -q --disable-pip-version-check -r requirements-ray.txt
 dir=$(.venv/bin/python -c 'import mujoco, os; print(os.path.dirname(mujoco.__file__))')
 lib=$(ls "$dir"/libmujoco.so.* | head -n1)
 mkdir -p .venv/mujoco-lib

@@ -22,6 +22,7 @@ import sys
 import robo
 
 ALLOWED = {"reset", "get_state", "post_actions", "instance", "perception"}
+CALLS_KEPT = 500  # reset/post_actions calls logged per program for the run record
 FRAMES_KEPT = 4  # raw frames remembered per camera for perception requests...
 FRAMES_BYTES = 64 << 20  # ...within this many bytes in all
 _services = None
@@ -48,6 +49,9 @@ class Session:
         self.calls = 0
         self.refused = 0
         self.override: dict | None = None
+        # What the program asked of the robot and what came of it (the run record's calls.json;
+        # skill extraction reads the targets of successful rounds from it).
+        self.calls_log: list[dict] = []
         # camera -> [(image_timestamp, rgb, depth, intrinsics)]: the raw frames this program was
         # given, so that a perception request works on exactly the frame the program saw.
         self.frames: dict[str, list] = {}
@@ -118,7 +122,9 @@ class Session:
         if fn == "reset":
             self.override = None
             self.frames.clear()  # simulated time starts again: old timestamps would match anew
-            return robo.reset()
+            r = robo.reset()
+            self.log({"fn": "reset", "result": r, "t_after": robo.get_state([])["timestamp"]})
+            return r
         cmd = args[0] if args else None
         n = len(cmd.get("actions", [])) if isinstance(cmd, dict) and isinstance(cmd.get("actions"), list) else 0
         if self.steps + n > self.budget:
@@ -127,13 +133,51 @@ class Session:
                 f"chunk has {n}; end the program, observe, and continue in the next decision"
             )
         self.override = None
+        t_before = robo.get_state([])["timestamp"]
         r = robo.post_actions(cmd)
         self.steps += n
+        after = robo.get_state([])
+        fb = after["control_feedback"]
+        entry = {"fn": "post_actions", "result": r, "t_before": t_before, "t_after": after["timestamp"],
+                 "feedback": {k: fb.get(k) for k in ("status", "reason", "executed")}}
+        if isinstance(cmd, dict):
+            entry.update(type=cmd.get("type"), freq=cmd.get("freq"), actions=cmd.get("actions"))
+        self.log(entry)
         return r
 
+    def log(self, entry: dict) -> None:
+        if len(self.calls_log) < CALLS_KEPT:
+            self.calls_log.append(entry)
 
-def observe(images: bool) -> dict:
-    """For the host's prompts: the numeric state and, optionally, both images as base64 PNG."""
+
+def save_raw(path: str) -> None:
+    """Every camera's raw frame (RGB, depth in metres, intrinsics, base_from_camera) and the
+    numeric state into one .npz for the run record (skill extraction binds rules to it);
+    written under a temporary name, then renamed."""
+    import numpy as np
+
+    s = robo.get_state(None, raw=True)
+    arrays: dict = {}
+    for cam, rgb in (s.get("image") or {}).items():
+        arrays[f"rgb.{cam}"] = rgb
+        if cam in (s.get("depth") or {}):
+            arrays[f"depth.{cam}"] = s["depth"][cam]
+        k = s["camera_intrinsics"][cam]
+        arrays[f"intrinsics.{cam}"] = np.array([k["fx"], k["fy"], k["cx"], k["cy"]], dtype=np.float64)
+        arrays[f"base_from_camera.{cam}"] = np.asarray(s["camera_extrinsics"][cam], dtype=np.float64)
+    numbers = {k: s.get(k) for k in ("joint", "ee_pose", "gripper", "timestamp", "external_force_n", "image_timestamp")}
+    arrays["state_json"] = np.array(json.dumps(numbers))
+    tmp = path + ".partial"
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(tmp, path)
+
+
+def observe(images: bool, raw: str | None = None) -> dict:
+    """For the host's prompts: the numeric state and, optionally, both images as base64 PNG;
+    with `raw`, the raw frames are saved there first (save_raw)."""
+    if raw:
+        save_raw(raw)
     s = robo.get_state(None if images else [])
     pngs = {k: base64.b64encode(v).decode() for k, v in s.pop("image").items()}
     for k in ("image_timestamp", "camera_intrinsics", "camera_extrinsics"):
@@ -165,11 +209,13 @@ def main() -> int:
                     sess.budget = int(cmd.get("budget", 600))
                     sess.observe_only = bool(cmd.get("observe_only", False))
                     sess.steps = sess.calls = sess.refused = 0
+                    sess.calls_log = []
                     print(json.dumps({"ok": True}), flush=True)
                 elif cmd.get("cmd") == "end":
-                    print(json.dumps({"steps": sess.steps, "calls": sess.calls, "refused": sess.refused}), flush=True)
+                    print(json.dumps({"steps": sess.steps, "calls": sess.calls, "refused": sess.refused,
+                                      "log": sess.calls_log}), flush=True)
                 elif cmd.get("cmd") == "observe":
-                    print(json.dumps(observe(bool(cmd.get("images", True)))), flush=True)
+                    print(json.dumps(observe(bool(cmd.get("images", True)), cmd.get("raw"))), flush=True)
                 elif cmd.get("cmd") == "reset":
                     sess.override = None
                     sess.frames.clear()

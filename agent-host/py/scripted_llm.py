@@ -9,6 +9,9 @@ until SIGTERM (or Ctrl-C). Standard library only.
 FILE is a recorded conversation ``{"gym", "model", "responses": [str, ...]}``. The reply to a
 request is ``responses[k]`` where k is the number of assistant messages in the request, so a
 replay is deterministic and stateless; past the end the reply is ``<stop>script exhausted</stop>``.
+FILE may also be a cassette recorded by ``--llm record:`` (JSON Lines, agent-host/src/cassette.rs):
+``responses[k]`` is then the recorded answer to its request with k assistant messages, whatever
+the rest of the request holds (a turn-by-turn replay; ``--llm replay:`` is the strict one).
 
 Two wire formats:
 
@@ -578,22 +581,50 @@ class Handler(BaseHTTPRequestHandler):
         self.state.write_log(n, "response", {"fault": "endless", "status": 200, "bytes_sent": sent})
 
 
+def load_responses(path):
+    """The answers of a conversation file or of a cassette, in turn order; exits with the reason."""
+    with open(path) as f:
+        text = f.read()
+    first = text.split("\n", 1)[0]
+    try:
+        head = json.loads(first)
+    except ValueError:
+        head = None
+    if not (isinstance(head, dict) and "r2g_cassette" in head):
+        script = json.loads(text)
+        responses = script.get("responses") if isinstance(script, dict) else None
+        if not isinstance(responses, list) or not all(isinstance(r, str) for r in responses):
+            sys.exit(f"{path}: expected an object with 'responses': [str, ...] or a cassette")
+        return responses, script.get("model", "scripted")
+    by_turn = {}
+    for n, line in enumerate(text.splitlines()[1:], start=2):
+        try:
+            entry = json.loads(line)
+            turn = sum(1 for m in entry["request"]["messages"] if m["role"] == "assistant")
+            answer = entry["response"]["text"]
+        except (ValueError, KeyError, TypeError) as e:
+            sys.exit(f"{path}, line {n}: not a cassette entry ({e!r})")
+        if not isinstance(answer, str):
+            sys.exit(f"{path}, line {n}: the response text is not a string")
+        by_turn.setdefault(turn, answer)
+    missing = [k for k in range(len(by_turn)) if k not in by_turn]
+    if missing:
+        sys.exit(f"{path}: no recorded answer for turn {missing[0]} (a cassette of several conversations?)")
+    return [by_turn[k] for k in range(len(by_turn))], head.get("endpoint", {}).get("model", "scripted")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--script", required=True, help="recorded conversation JSON with 'responses'")
+    ap.add_argument("--script", required=True, help="recorded conversation JSON with 'responses', or a cassette")
     ap.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (0: any free port)")
     ap.add_argument("--log", help="folder for request-NNN.json / response-NNN.json")
     a = ap.parse_args()
 
-    with open(a.script) as f:
-        script = json.load(f)
-    responses = script.get("responses") if isinstance(script, dict) else None
-    if not isinstance(responses, list) or not all(isinstance(r, str) for r in responses):
-        sys.exit(f"{a.script}: expected an object with 'responses': [str, ...]")
+    responses, model = load_responses(a.script)
     if a.log:
         os.makedirs(a.log, exist_ok=True)
 
-    Handler.state = State(responses, script.get("model", "scripted"), a.log)
+    Handler.state = State(responses, model, a.log)
     server = ThreadingHTTPServer(("127.0.0.1", a.port), Handler)
     server.daemon_threads = True
     stop = threading.Event()

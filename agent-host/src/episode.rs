@@ -32,8 +32,37 @@ pub struct EpisodeConfig {
     pub robot_config: Option<PathBuf>,
     /// Where new memory records from the worker's `memory/` folder are appended.
     pub memory_dir: PathBuf,
-    /// Text placed in the system prompt's skills section (later: the skill library).
-    pub skills: String,
+    /// Chooses the skills for the system prompt's skills section from the first observation.
+    pub skills: Option<Skills>,
+    /// The gym's augmentation seed and placement perturbation (recorded in config.json).
+    pub seed: u64,
+    pub perturb: Option<String>,
+}
+
+/// What a skill library offers an episode: agent-host knows nothing of the library's format;
+/// the `skills` crate implements this.
+pub trait SkillSource: Send + Sync {
+    /// Chooses skills for `task` given the episode's first observation (`first_obs`: the raw
+    /// frames as a run record keeps them) and `state` (its numeric state). `prompt` goes into
+    /// the system prompt, `log` into the run folder's skills.json and the viewer.
+    fn choose(&self, task: &str, first_obs: &Path, state: &Value) -> anyhow::Result<ChosenSkills>;
+}
+
+pub struct ChosenSkills {
+    pub prompt: String,
+    pub log: Value,
+    /// Files the stage programs may read, relative to the scratch folder (the skills' JSON).
+    pub files: Vec<(String, Vec<u8>)>,
+}
+
+/// A shared [`SkillSource`].
+#[derive(Clone)]
+pub struct Skills(pub std::sync::Arc<dyn SkillSource>);
+
+impl std::fmt::Debug for Skills {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Skills(..)")
+    }
 }
 
 /// A model's structured decision.
@@ -85,11 +114,37 @@ pub struct EpisodeResult {
     pub model_s: f64,
     pub exec_s: f64,
     pub overhead_s: f64,
+    /// Where `overhead_s` went (see [`HostSplit`]).
+    pub host_split: HostSplit,
     pub executions: u32,
     pub violations: u32,
     pub stop_reason: String,
+    /// Where the answers came from: "live" (an endpoint, recorded or not), "scripted" (a
+    /// conversation written by us) or "replayed" (a cassette).
+    pub llm_source: String,
     pub run_dir: String,
     pub evaluation: Value,
+}
+
+/// The host's own time in an episode, by what it did (s): starting the episode (reset, first
+/// observation, prompts), starting and ending each program's proxy and confined worker,
+/// observing after each program (state and PNG images through the proxy), writing the records,
+/// and the rest (building messages and feedback, memory records).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct HostSplit {
+    pub setup_s: f64,
+    pub program_start_s: f64,
+    pub observe_s: f64,
+    pub records_s: f64,
+    pub other_s: f64,
+}
+
+/// Runs `f`, adding its wall time to `acc`.
+fn timed<T>(acc: &mut f64, f: impl FnOnce() -> T) -> T {
+    let t = Instant::now();
+    let r = f();
+    *acc += t.elapsed().as_secs_f64();
+    r
 }
 
 /// Writes a file whole or not at all (temporary name, then rename).
@@ -173,14 +228,29 @@ fn images(obs: &Value) -> Vec<(String, Vec<u8>)> {
     out
 }
 
-fn feedback_text(n: u32, r: &ExecResult, before: &Value, after: &Value, budget: u64, left: u32) -> String {
+fn feedback_text(
+    n: u32,
+    r: &ExecResult,
+    before: &Value,
+    after: &Value,
+    budget: u64,
+    left: u32,
+    lockstep: bool,
+) -> String {
+    // In lockstep the wall clock says nothing about the robot and would make each request
+    // differ from run to run (a replayed cassette needs the same requests): simulated time.
+    let took = if lockstep {
+        let t = |s: &Value| s["state"]["timestamp"].as_f64().unwrap_or(0.0);
+        format!("{:.3} s simulated", t(after) - t(before))
+    } else {
+        format!("{:.1} s", r.wall_s)
+    };
     let mut t = format!(
-        "Stage program {n} ended: {}{}; control steps used {} of {budget}; robot calls {}; {:.1} s.\n",
+        "Stage program {n} ended: {}{}; control steps used {} of {budget}; robot calls {}; {took}.\n",
         r.exit,
         r.exit_code.map(|c| format!(" (code {c})")).unwrap_or_default(),
         r.control_steps,
         r.robot_calls,
-        r.wall_s
     );
     if let Some(v) = &r.violation {
         t.push_str(&format!("SANDBOX: {v}\n"));
@@ -284,9 +354,31 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
     if reset["ok"] != 1 {
         bail!("reset before the episode failed: {}", reset["feedback"]);
     }
-    let first = worker.host_cmd(json!({"cmd": "observe", "images": true}))?;
+    // Raw frames (RGB, depth, intrinsics, extrinsics) at each round boundary, for extraction.
+    std::fs::create_dir_all(cfg.run_dir.join("rounds/000"))?;
+    let raw_at = |round: u32| cfg.run_dir.join(format!("rounds/{round:03}/obs.npz")).display().to_string();
+    let first = worker.host_cmd(json!({"cmd": "observe", "images": true, "raw": raw_at(0)}))?;
+    let mut obs_before = "rounds/000/obs.npz".to_string();
+    // The first program's processes start while the first prompt is built and answered (not
+    // earlier: on two cores they would slow the reset and the first images).
+    worker.prestart_next();
     let profile = first["state"]["backend"].as_str().unwrap_or("simulation").to_string();
-    let system = system_prompt(&cfg.root, &profile, &cfg.skills);
+    let skills_text = match &cfg.skills {
+        Some(Skills(source)) => {
+            let chosen = source.choose(&task, &cfg.run_dir.join("rounds/000/obs.npz"), &first["state"])?;
+            rec.file("skills.json", &serde_json::to_vec_pretty(&chosen.log)?)?;
+            for (rel, body) in &chosen.files {
+                let p = scratch.join(rel);
+                if let Some(d) = p.parent() {
+                    std::fs::create_dir_all(d)?;
+                }
+                write_atomic(&p, body)?;
+            }
+            chosen.prompt
+        }
+        None => String::new(),
+    };
+    let system = system_prompt(&cfg.root, &profile, &skills_text);
     rec.file("system_prompt.md", system.as_bytes())?;
     rec.file(
         "config.json",
@@ -294,6 +386,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
             "gym": cfg.gym, "scene": cfg.scene, "task": task, "endpoint": cfg.endpoint,
             "max_decisions": cfg.max_decisions, "control_steps": cfg.control_steps, "limits": cfg.limits,
             "lockstep": cfg.lockstep, "instance": instance, "sandbox": worker.enforced,
+            "seed": cfg.seed, "perturb": cfg.perturb, "skills": cfg.skills.is_some(),
         }))?
         .as_slice(),
     )?;
@@ -317,6 +410,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         parts.push(Part::Png(png));
     }
     messages.push(Message { role: Role::User, parts });
+    let mut split = HostSplit { setup_s: t0.elapsed().as_secs_f64(), ..HostSplit::default() };
     let mut before = first;
     let mut observe_only = true;
     let mut executions = 0u32;
@@ -340,7 +434,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         out.tokens_out += completion.usage.output;
         out.tokens_reasoning += completion.usage.reasoning.unwrap_or(0);
         let dir = format!("rounds/{round:03}");
-        rec.file(&format!("{dir}/response.txt"), completion.text.as_bytes())?;
+        timed(&mut split.records_s, || rec.file(&format!("{dir}/response.txt"), completion.text.as_bytes()))?;
         let decision = Decision::parse(&completion.text);
         messages.push(Message::text(Role::Assistant, completion.text.clone()));
         let mut record = json!({
@@ -349,7 +443,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         });
         if let Some(why) = &decision.stop {
             if !observe_only {
-                rec.round(&record)?;
+                timed(&mut split.records_s, || rec.round(&record))?;
                 break why.clone();
             }
         }
@@ -358,21 +452,30 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         match &decision.code {
             Some(code) => {
                 executions += 1;
-                rec.file(&format!("{dir}/stage.py"), code.as_bytes())?;
+                timed(&mut split.records_s, || rec.file(&format!("{dir}/stage.py"), code.as_bytes()))?;
                 let budget = Budget { control_steps: if observe_only { 0 } else { cfg.control_steps }, observe_only };
                 let r = worker.run(code, &format!("stage-{executions}.py"), budget)?;
                 out.exec_s += r.wall_s;
+                split.program_start_s += r.host_s;
                 out.violations += u32::from(r.violation.is_some());
-                let after = worker.host_cmd(json!({"cmd": "observe", "images": true}))?;
+                let after = timed(&mut split.observe_s, || {
+                    worker.host_cmd(json!({"cmd": "observe", "images": true, "raw": raw_at(round)}))
+                })?;
+                timed(&mut split.records_s, || rec.file(&format!("{dir}/calls.json"), &serde_json::to_vec(&r.calls)?))?;
                 let left = cfg.max_decisions.saturating_sub(out.responses);
-                text = feedback_text(executions, &r, &before, &after, budget.control_steps, left);
-                for (name, png) in images(&after) {
-                    rec.file(&format!("{dir}/{name}.png"), &png)?;
+                text = feedback_text(executions, &r, &before, &after, budget.control_steps, left, cfg.lockstep);
+                for (name, png) in timed(&mut split.observe_s, || images(&after)) {
+                    timed(&mut split.records_s, || rec.file(&format!("{dir}/{name}.png"), &png))?;
                     attach.push(Part::Png(png));
                 }
                 let memory = crate::memory::collect(&scratch, &cfg.memory_dir, &mut records_taken);
                 record["exec"] = serde_json::to_value(&r)?;
+                record["state_before"] = before["state"].clone();
                 record["state_after"] = after["state"].clone();
+                record["obs_before"] = json!(obs_before);
+                record["obs_after"] = json!(format!("{dir}/obs.npz"));
+                record["calls"] = json!(format!("{dir}/calls.json"));
+                obs_before = format!("{dir}/obs.npz");
                 record["memory_added"] = json!(memory);
                 before = after;
             }
@@ -388,9 +491,11 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
             ));
             observe_only = false;
         }
-        rec.file(&format!("{dir}/feedback.txt"), text.as_bytes())?;
         record["feedback"] = json!(text);
-        rec.round(&record)?;
+        timed(&mut split.records_s, || {
+            rec.file(&format!("{dir}/feedback.txt"), text.as_bytes())?;
+            rec.round(&record)
+        })?;
         let mut parts = vec![Part::Text(text)];
         parts.extend(attach);
         messages.push(Message { role: Role::User, parts });
@@ -400,6 +505,9 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
     out.stop_reason = stop_reason;
     out.wall_s = t0.elapsed().as_secs_f64();
     out.overhead_s = (out.wall_s - out.model_s - out.exec_s).max(0.0);
+    split.other_s =
+        (out.overhead_s - split.setup_s - split.program_start_s - split.observe_s - split.records_s).max(0.0);
+    out.host_split = split;
     Ok(out)
 }
 

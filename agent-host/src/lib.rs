@@ -1,5 +1,6 @@
 #![doc = include_str!("../README.md")]
 
+pub mod cassette;
 pub mod episode;
 pub mod llm;
 pub mod memory;

@@ -10,6 +10,8 @@ use base64::Engine as _;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
+use crate::cassette::{self, CassetteError, CassetteMode, CassetteSpec, Player, Recorder};
+
 /// One endpoint, as its TOML file describes it.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -33,6 +35,10 @@ pub struct EndpointConfig {
     /// Further attempts after a 429, a 5xx or a transport failure.
     #[serde(default = "default_retries")]
     pub retries: u32,
+    /// Set by `--llm record:` / `--llm replay:`, never by the TOML file: answers are recorded to
+    /// or replayed from this cassette ([`crate::cassette`]).
+    #[serde(default, skip_deserializing, skip_serializing_if = "Option::is_none")]
+    pub cassette: Option<CassetteSpec>,
 }
 
 fn default_temperature() -> f64 {
@@ -140,6 +146,8 @@ pub enum LlmError {
     Transport { endpoint: String, detail: String, attempts: u32 },
     #[error("{endpoint}: malformed response: {detail}")]
     Malformed { endpoint: String, detail: String },
+    #[error(transparent)]
+    Cassette(#[from] CassetteError),
 }
 
 /// The most a response body may hold.
@@ -151,13 +159,32 @@ pub struct Client {
     pub cfg: EndpointConfig,
     key: Option<String>,
     http: ureq::Agent,
+    tape: Option<Tape>,
+}
+
+/// Where answers are recorded to or replayed from.
+enum Tape {
+    Record(Recorder),
+    /// No HTTP at all: every answer comes from the cassette.
+    Replay(Box<Player>),
 }
 
 impl Client {
+    /// A client of the endpoint; with `cfg.cassette` set, one that records every answer to it
+    /// (a new file) or answers from it alone.
     pub fn new(cfg: EndpointConfig) -> Result<Self, LlmError> {
-        let key = match &cfg.api_key_env {
-            Some(var) => Some(std::env::var(var).map_err(|_| LlmError::NoKey(var.clone()))?),
+        let tape = match &cfg.cassette {
             None => None,
+            Some(CassetteSpec { mode: CassetteMode::Record, path }) => {
+                Some(Tape::Record(Recorder::create(path, &cfg)?))
+            }
+            Some(CassetteSpec { mode: CassetteMode::Replay, path }) => {
+                Some(Tape::Replay(Box::new(Player::open(path)?)))
+            }
+        };
+        let key = match (&cfg.api_key_env, &tape) {
+            (_, Some(Tape::Replay(_))) | (None, _) => None,
+            (Some(var), _) => Some(std::env::var(var).map_err(|_| LlmError::NoKey(var.clone()))?),
         };
         let timeout = Duration::from_secs_f64(cfg.timeout_s);
         let http: ureq::Agent = ureq::Agent::config_builder()
@@ -167,7 +194,7 @@ impl Client {
             .max_redirects(0)
             .build()
             .into();
-        Ok(Self { cfg, key, http })
+        Ok(Self { cfg, key, http, tape })
     }
 
     fn url(&self) -> String {
@@ -218,9 +245,38 @@ impl Client {
         }
     }
 
-    /// One completion, retried on 429, 5xx and transport failures with exponential backoff
-    /// (0.5 s doubling, or the server's Retry-After up to 30 s).
+    /// One completion: from the endpoint (recorded when a cassette records), or from the
+    /// cassette alone when it replays (`attempts` 0: no HTTP).
     pub fn complete(&self, system: &str, messages: &[Message]) -> Result<Completion, LlmError> {
+        match &self.tape {
+            None => self.over_http(system, messages),
+            Some(Tape::Record(rec)) => {
+                // Canonical first: a request that cannot be keyed costs no tokens.
+                let c =
+                    cassette::canonical(&self.cfg.model, self.cfg.temperature, self.cfg.max_tokens, system, messages)?;
+                let out = self.over_http(system, messages)?;
+                rec.append(&c, &out)?;
+                Ok(out)
+            }
+            Some(Tape::Replay(player)) => {
+                let t0 = Instant::now();
+                let e = &player.endpoint;
+                let c = cassette::canonical(&e.model, e.temperature, e.max_tokens, system, messages)?;
+                let r = player.answer(&c)?;
+                Ok(Completion {
+                    text: r.text,
+                    usage: r.usage,
+                    attempts: 0,
+                    wall_s: t0.elapsed().as_secs_f64(),
+                    raw: r.raw,
+                })
+            }
+        }
+    }
+
+    /// One completion over HTTP, retried on 429, 5xx and transport failures with exponential
+    /// backoff (0.5 s doubling, or the server's Retry-After up to 30 s).
+    fn over_http(&self, system: &str, messages: &[Message]) -> Result<Completion, LlmError> {
         let url = self.url();
         let body = serde_json::to_vec(&self.body(system, messages)).map_err(|e| LlmError::Malformed {
             endpoint: url.clone(),

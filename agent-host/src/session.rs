@@ -1,13 +1,15 @@
 //! Whole runs of the agent host (`r2g episode`, `r2g batch`, `r2g exec`): the stage-code loop
 //! against a gym instance started here, with a configured LLM endpoint or the scripted one
-//! (`scripted`: a recorded conversation served on loopback), judged afterwards by the native
-//! evaluator; and one program in the sandbox against a running instance.
+//! (`scripted`: a recorded conversation served on loopback), a live endpoint whose answers are
+//! recorded (`record:`) or a cassette replayed without a network (`replay:`), judged afterwards
+//! by the native evaluator; and one program in the sandbox against a running instance.
 
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
+use crate::cassette::{CassetteMode, CassetteSpec};
 use crate::episode::{self, EpisodeConfig, EpisodeResult};
 use crate::llm::EndpointConfig;
 use anyhow::{bail, Context};
@@ -21,7 +23,9 @@ pub struct EpisodeOpts {
     /// Gym name (see `r2g gyms`), gym folder, or scene file.
     pub gym: String,
     /// An endpoint TOML file (provider, base_url, model, api_key_env, ...), "scripted" (the
-    /// gym's recorded conversation) or "scripted:<conversation.json>".
+    /// gym's recorded conversation), "scripted:<conversation.json | cassette.jsonl>",
+    /// "record:<endpoint.toml>" (answers recorded to `<run>/cassette.jsonl`) or
+    /// "replay:<cassette.jsonl>".
     pub llm: String,
     /// Wire format for `--llm scripted`: openai or anthropic.
     pub provider: String,
@@ -43,6 +47,11 @@ pub struct EpisodeOpts {
     /// Placement perturbation drawn from the seed, as r2g-sim's `--perturb` takes it
     /// (sim_host::placement; `r2g` parses it before it gets here).
     pub perturb: Option<String>,
+    /// Chooses skills for the episode's prompt (the `skills` crate's selection); None: none.
+    pub skills: Option<crate::episode::Skills>,
+    /// The skill library `skills` selects from, for episodes run as separate processes
+    /// (`--skills use --library DIR`).
+    pub library: Option<PathBuf>,
 }
 
 /// The repo's scripted LLM server, replaying a recorded conversation; stopped on drop.
@@ -99,21 +108,27 @@ pub fn root() -> PathBuf {
     launch::gyms_dir().parent().map(Path::to_path_buf).unwrap_or_default()
 }
 
-pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
+/// An LLM endpoint for a run and what answers it (`live`, `scripted`, `replayed`): a TOML file;
+/// `record:<toml>` (that endpoint, every exchange kept in `<run_dir>/cassette.jsonl`);
+/// `replay:<cassette>` (answers from a cassette, no network); or the scripted server replaying a
+/// recorded conversation (`scripted` = `default_script` or the gym's, `scripted:<file>`),
+/// started here and stopped when the returned guard drops.
+pub fn endpoint(
+    llm: &str,
+    provider: &str,
+    gym: &str,
+    default_script: Option<&Path>,
+    run_dir: &Path,
+) -> anyhow::Result<(EndpointConfig, Option<Scripted>, &'static str)> {
     let root = root();
-    let scene = launch::resolve_scene(&o.gym)?;
-    let gym = scene.parent().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
-    let run_dir = o.out.clone().unwrap_or_else(|| root.join("runs").join("episodes").join(format!("{gym}-{stamp}")));
-    std::fs::create_dir_all(&run_dir)?;
-    let run_dir = std::fs::canonicalize(&run_dir)?;
-    let (endpoint, _scripted) = if o.llm == "scripted" || o.llm.starts_with("scripted:") {
-        let script = o.llm.strip_prefix("scripted:").map(Path::new);
-        let s = Scripted::start(&root, &gym, script, Some(&run_dir.join("llm-log")))?;
+    let log = run_dir.join("llm-log");
+    if llm == "scripted" || llm.starts_with("scripted:") {
+        let script = llm.strip_prefix("scripted:").map(Path::new).or(default_script);
+        let s = Scripted::start(&root, gym, script, Some(&log))?;
         // The scripted server checks that a key is sent, like a real endpoint; it is not secret.
         std::env::set_var("R2G_SCRIPTED_KEY", "scripted-key");
         let e = EndpointConfig {
-            provider: o.provider.clone(),
+            provider: provider.to_string(),
             base_url: format!("http://127.0.0.1:{}", s.port),
             model: format!("scripted-{gym}"),
             api_key_env: Some("R2G_SCRIPTED_KEY".into()),
@@ -121,32 +136,103 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
             max_tokens: 4096,
             timeout_s: 60.0,
             retries: 2,
+            cassette: None,
         };
         e.check()?;
-        (e, Some(s))
+        Ok((e, Some(s), "scripted"))
+    } else if let Some(toml) = llm.strip_prefix("record:") {
+        let mut e = EndpointConfig::load(Path::new(toml))?;
+        e.cassette = Some(CassetteSpec { mode: CassetteMode::Record, path: run_dir.join("cassette.jsonl") });
+        Ok((e, None, "live"))
+    } else if let Some(path) = llm.strip_prefix("replay:") {
+        // Read whole here: a malformed cassette is refused before anything starts.
+        let path = std::fs::canonicalize(path).with_context(|| format!("the cassette {path}"))?;
+        let mut e = crate::cassette::Player::open(&path)?.endpoint;
+        e.model = format!("replayed:{}", e.model);
+        Ok((e, None, "replayed"))
     } else {
-        (EndpointConfig::load(Path::new(&o.llm))?, None)
-    };
-    let trace_dir = run_dir.join("episodes");
-    let instance = format!("ep{stamp}");
-    let opts = UpOptions {
-        scene: scene.clone(),
-        instance: instance.clone(),
-        mode: if o.wall { Mode::Wall } else { Mode::Lockstep },
-        render_hz: 10.0,
-        control_args: Vec::new(),
-        sim_args: {
-            let mut a =
-                vec!["--trace-dir".into(), trace_dir.display().to_string(), "--seed".into(), o.seed.to_string()];
-            if let Some(p) = &o.perturb {
-                a.extend(["--perturb".into(), p.clone()]);
-            }
-            a
-        },
-        robot_config: Some(o.robot_config.clone().unwrap_or_else(launch::default_robot_config)),
-        ready_timeout: Duration::from_secs(60),
-    };
-    let mut inst = Instance::up(&opts)?;
+        Ok((EndpointConfig::load(Path::new(llm))?, None, "live"))
+    }
+}
+
+/// A gym instance started for one run (lockstep unless `wall`), its episodes judged into
+/// `<run_dir>/episodes`.
+pub struct GymRun {
+    pub inst: Instance,
+    pub instance: String,
+    pub trace_dir: PathBuf,
+    pub scene: PathBuf,
+    pub gym: String,
+}
+
+/// Where a run's objects start and how it is driven.
+#[derive(Debug, Clone, Default)]
+pub struct GymSetup {
+    pub wall: bool,
+    pub seed: u64,
+    pub perturb: Option<String>,
+    pub robot_config: Option<PathBuf>,
+}
+
+impl GymRun {
+    pub fn start(gym_or_scene: &str, run_dir: &Path, setup: &GymSetup) -> anyhow::Result<Self> {
+        let scene = launch::resolve_scene(gym_or_scene)?;
+        let gym =
+            scene.parent().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let trace_dir = run_dir.join("episodes");
+        let instance = format!("ep{}-{}", std::process::id(), unique());
+        let mut sim_args =
+            vec!["--trace-dir".into(), trace_dir.display().to_string(), "--seed".into(), setup.seed.to_string()];
+        if let Some(p) = &setup.perturb {
+            sim_args.extend(["--perturb".into(), p.clone()]);
+        }
+        let opts = UpOptions {
+            scene: scene.clone(),
+            instance: instance.clone(),
+            mode: if setup.wall { Mode::Wall } else { Mode::Lockstep },
+            render_hz: 10.0,
+            control_args: Vec::new(),
+            sim_args,
+            robot_config: Some(setup.robot_config.clone().unwrap_or_else(launch::default_robot_config)),
+            ready_timeout: Duration::from_secs(60),
+        };
+        let inst = Instance::up(&opts)?;
+        Ok(Self { inst, instance, trace_dir, scene, gym })
+    }
+
+    /// Stops the instance, which ends (and judges) the last episode; that verdict.
+    pub fn finish(mut self) -> anyhow::Result<Value> {
+        // Only a verdict written after this point is the last episode's (each reset() wrote one before).
+        let judged_before = episode::verdict_count(&self.trace_dir);
+        self.inst.stop();
+        episode::newest_verdict(&self.trace_dir, judged_before, Duration::from_secs(10))
+    }
+}
+
+/// A number no other call in this process returns: milliseconds since boot, and a count for
+/// runs started in the same millisecond (threads of one benchmark).
+fn unique() -> String {
+    static COUNT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    format!("{}-{}", ipc_schema::monotonic_ns() / 1_000_000, COUNT.fetch_add(1, std::sync::atomic::Ordering::Relaxed))
+}
+
+/// A fresh run folder: `out`, or `runs/<kind>/<gym>-<pid>-<ms>-<n>`, canonical.
+pub fn run_folder(out: Option<&Path>, kind: &str, gym: &str) -> anyhow::Result<PathBuf> {
+    let stamp = format!("{}-{}", std::process::id(), unique());
+    let dir = out.map_or_else(|| root().join("runs").join(kind).join(format!("{gym}-{stamp}")), Path::to_path_buf);
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    Ok(std::fs::canonicalize(&dir)?)
+}
+
+pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
+    let root = root();
+    let scene = launch::resolve_scene(&o.gym)?;
+    let gym = scene.parent().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let run_dir = run_folder(o.out.as_deref(), "episodes", &gym)?;
+    let (endpoint, _scripted, source) = endpoint(&o.llm, &o.provider, &gym, None, &run_dir)?;
+    let setup =
+        GymSetup { wall: o.wall, seed: o.seed, perturb: o.perturb.clone(), robot_config: o.robot_config.clone() };
+    let gym_run = GymRun::start(&o.gym, &run_dir, &setup)?;
     let cfg = EpisodeConfig {
         gym: gym.clone(),
         scene,
@@ -159,15 +245,19 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
         lockstep: !o.wall,
         robot_config: o.robot_config.clone(),
         memory_dir: o.memory.clone().unwrap_or_else(|| root.join("robot-skill/memory")),
-        skills: String::new(),
+        skills: o.skills.clone(),
+        seed: o.seed,
+        perturb: o.perturb.clone(),
     };
-    let result = episode::run(&cfg, &instance);
-    // Stopping the instance ends the episode: sim-host judges it from its native trace. Only a
-    // verdict written after this point is the last episode's (each reset() wrote one before).
-    let judged_before = episode::verdict_count(&trace_dir);
-    inst.stop();
+    let result = episode::run(&cfg, &gym_run.instance);
+    let eval = gym_run.finish();
     let mut result = result?;
-    let eval = episode::newest_verdict(&trace_dir, judged_before, Duration::from_secs(10))?;
+    result.llm_source = source.into();
+    if source == "replayed" && result.stop_reason.starts_with(episode::ENDPOINT_FAILED) {
+        // Not a task failure: the replay no longer matches its recording.
+        bail!("{} (run folder {})", result.stop_reason, run_dir.display());
+    }
+    let eval = eval?;
     result.success = eval["success"].as_bool().unwrap_or(false);
     result.evaluation = eval;
     std::fs::write(run_dir.join("result.json"), serde_json::to_vec_pretty(&result)?)?;
@@ -183,9 +273,7 @@ pub fn batch(
     episodes: u32,
     mut on_episode: impl FnMut(u32, &anyhow::Result<EpisodeResult>),
 ) -> anyhow::Result<Value> {
-    let root = root();
-    let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
-    let dir = o.out.clone().unwrap_or_else(|| root.join("runs").join("batches").join(format!("{}-{stamp}", o.gym)));
+    let dir = batch_dir(o);
     let mut rows = Vec::new();
     for i in 0..episodes {
         let seed = if o.seed == 0 { 0 } else { o.seed + u64::from(i) };
@@ -197,6 +285,74 @@ pub fn batch(
             Err(e) => rows.push(json!({"error": format!("{e:#}"), "success": false})),
         }
     }
+    summarize(o, &dir, rows)
+}
+
+fn batch_dir(o: &EpisodeOpts) -> PathBuf {
+    let stamp = format!("{}-{}", std::process::id(), ipc_schema::monotonic_ns() / 1_000_000);
+    o.out.clone().unwrap_or_else(|| root().join("runs").join("batches").join(format!("{}-{stamp}", o.gym)))
+}
+
+/// The `r2g episode` arguments that run `o` into `out` (one job of a batch on a fleet).
+pub fn episode_args(o: &EpisodeOpts, out: &Path) -> Vec<String> {
+    let mut a: Vec<String> = vec!["episode".into(), o.gym.clone(), "--llm".into(), o.llm.clone()];
+    a.extend(["--provider".into(), o.provider.clone(), "--max-decisions".into(), o.max_decisions.to_string()]);
+    a.extend(["--control-steps".into(), o.control_steps.to_string(), "--wall-s".into(), o.wall_s.to_string()]);
+    a.extend(["--out".into(), out.display().to_string()]);
+    if o.wall {
+        a.push("--wall".into());
+    }
+    if let Some(rc) = &o.robot_config {
+        a.extend(["--robot-config".into(), rc.display().to_string()]);
+    }
+    if let Some(m) = &o.memory {
+        a.extend(["--memory".into(), m.display().to_string()]);
+    }
+    if o.seed != 0 {
+        a.extend(["--seed".into(), o.seed.to_string()]);
+    }
+    if let Some(p) = &o.perturb {
+        a.extend(["--perturb".into(), p.clone()]);
+    }
+    if let Some(lib) = &o.library {
+        a.extend(["--skills".into(), "use".into(), "--library".into(), lib.display().to_string()]);
+    }
+    a
+}
+
+/// [`batch`] on a fleet: every episode an `r2g episode` job on `backend` (local workers, or Ray
+/// tasks across machines), each into `<out>/episode-NNN`. Results stream back as they finish
+/// (`on_episode` with the episode's number and its result or error) into the same records and
+/// summary as a local batch. Paths in the options must be valid on every node.
+pub fn batch_on(
+    o: &EpisodeOpts,
+    episodes: u32,
+    backend: &fleet::Backend,
+    mut on_episode: impl FnMut(u32, &Value),
+) -> anyhow::Result<Value> {
+    let dir = std::path::absolute(batch_dir(o))?;
+    let jobs: Vec<fleet::Job> = (0..episodes)
+        .map(|i| fleet::Job { id: i as usize, args: episode_args(o, &dir.join(format!("episode-{i:03}"))) })
+        .collect();
+    let mut rows: Vec<(u64, Value)> = Vec::new();
+    fleet::run(&jobs, backend, &dir, |r| {
+        let i = r["id"].as_u64().unwrap_or(0);
+        let row = match (&r["value"], r.get("error")) {
+            (v @ Value::Object(_), _) => v.clone(),
+            (_, Some(e)) => json!({"error": e, "success": false}),
+            _ => {
+                json!({"error": format!("r2g episode exited with {}: {}", r["rc"], r["stderr_tail"].as_str().unwrap_or("").trim()), "success": false})
+            }
+        };
+        on_episode(i as u32, &row);
+        rows.push((i, row));
+    })?;
+    rows.sort_by_key(|(i, _)| *i);
+    summarize(o, &dir, rows.into_iter().map(|(_, r)| r).collect())
+}
+
+/// The batch's metrics over its episodes' results, written to `<dir>/batch.json`.
+fn summarize(o: &EpisodeOpts, dir: &Path, rows: Vec<Value>) -> anyhow::Result<Value> {
     let n = rows.len().max(1) as f64;
     let sum = |k: &str| rows.iter().map(|r| r[k].as_f64().unwrap_or(0.0)).sum::<f64>();
     let summary = json!({

@@ -33,7 +33,7 @@ pub fn write(dir: &Path) -> anyhow::Result<std::path::PathBuf> {
         })
         .collect();
     let data = json!({"config": read_json(&dir.join("config.json")), "result": read_json(&dir.join("result.json")),
-                      "rounds": rounds});
+                      "rounds": rounds, "skills": read_json(&dir.join("skills.json"))});
     // No `<`, `>` or `&` in the data block: model or program text cannot end it or change how
     // the HTML parser reads it (JSON allows the \u escapes).
     let blob = serde_json::to_string(&data)?.replace('<', "\\u003c").replace('>', "\\u003e").replace('&', "\\u0026");
@@ -69,6 +69,16 @@ const t = el('table', {id: 'metrics'});
  ['execution s', (r.exec_s || 0).toFixed(1)], ['host overhead s', (r.overhead_s || 0).toFixed(2)],
  ['stop', r.stop_reason]].forEach(([k, v]) => t.append(el('tr', {}, el('th', {}, k), el('td', {}, String(v)))));
 s.append(t);
+const sk = d.skills;
+if (sk && sk.ranked) {
+  // Which skills the episode was given, and why the others were not.
+  const st = el('table', {id: 'skills'}, el('tr', {}, el('th', {}, 'skill'), el('th', {}, 'relevance'),
+    el('th', {}, 'success lower bound'), el('th', {}, 'score'), el('th', {}, 'given')));
+  for (const k of sk.ranked) st.append(el('tr', {}, el('td', {}, `${k.id} v${k.version}`), el('td', {}, k.relevance.toFixed(3)),
+    el('td', {}, k.success_lower_bound.toFixed(3)), el('td', {}, k.score.toFixed(3)), el('td', {}, (sk.chosen || []).includes(k.id) ? 'yes' : 'no')));
+  s.append(el('h2', {}, `Skills selected: ${(sk.chosen || []).join(', ') || 'none'}`), st);
+  for (const [id, why] of sk.excluded || []) s.append(el('p', {}, `${id}: left out, ${why}`));
+}
 const box = document.getElementById('rounds');
 for (const rd of d.rounds) {
   const div = el('div', {className: 'round'});

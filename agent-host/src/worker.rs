@@ -84,12 +84,20 @@ pub struct ExecResult {
     /// Set when the sandbox stopped or refused something, in words the model can act on.
     pub violation: Option<String>,
     pub wall_s: f64,
+    /// The host's own part of running it, outside `wall_s`: starting the program's proxy and
+    /// confined worker before, and ending them after, s.
+    #[serde(default)]
+    pub host_s: f64,
     /// Waypoints posted, robot calls made and calls refused by the budget.
     pub control_steps: u64,
     pub robot_calls: u64,
     pub budget_refusals: u64,
     /// Output written straight to the worker's descriptors (bypassing sys.stdout), tail only.
     pub raw_output: String,
+    /// The program's reset/post_actions calls as the proxy logged them (targets, reply,
+    /// feedback, robot time before and after); the run record keeps them in `calls.json`.
+    #[serde(skip)]
+    pub calls: Vec<serde_json::Value>,
 }
 
 /// The trusted proxy: a Python process holding the real `robo` connection.
@@ -146,10 +154,45 @@ fn read_line_within(r: &mut BufReader<ChildStdout>, timeout: Duration) -> anyhow
     }
 }
 
+/// A program's proxy and confined worker, started and waiting for the program.
+struct Launched {
+    proxy: Proxy,
+    ctl: UnixStream,
+    worker: Option<Child>,
+    cgroup: Option<PathBuf>,
+    status_r: Option<std::io::PipeReader>,
+    out_path: PathBuf,
+    err_path: PathBuf,
+}
+
+impl Drop for Launched {
+    /// One that no program used: its group and cgroup go (the proxy goes with `Proxy`'s drop).
+    fn drop(&mut self) {
+        if let Some(mut w) = self.worker.take() {
+            // SAFETY: the worker's own process group, which we created.
+            unsafe { libc::kill(-(w.id() as i32), libc::SIGKILL) };
+            let _ = w.wait();
+        }
+        if let Some(cg) = self.cgroup.take() {
+            for _ in 0..50 {
+                if std::fs::remove_dir(&cg).is_ok() {
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        }
+    }
+}
+
 pub struct Worker {
     cfg: WorkerConfig,
     /// The proxy the host itself uses between programs (observations, resets).
     host: Option<Proxy>,
+    /// The next program's proxy and worker, started ahead (see [`Self::launch`]).
+    next: Option<Launched>,
+    /// Start the next program's processes as soon as one ends (default); off, each starts when
+    /// its program comes (`bench agent` measures both).
+    pub prestart: bool,
     /// What the kernel enforced on the last worker.
     pub enforced: Option<Enforced>,
     pub starts: u32,
@@ -250,7 +293,9 @@ fn make_cgroup(name: &str, pids: u64) -> Option<PathBuf> {
 
 impl Worker {
     pub fn new(cfg: WorkerConfig) -> Self {
-        Self { cfg, host: None, enforced: None, starts: 0 }
+        // R2G_HOST_BASELINE=1: the host as it was, for `bench agent`'s comparison in one run.
+        let prestart = !ipc_schema::process::host_baseline();
+        Self { cfg, host: None, next: None, prestart, enforced: None, starts: 0 }
     }
 
     fn python(&self) -> PathBuf {
@@ -334,52 +379,45 @@ impl Worker {
         drop(cmd);
         let input = child.stdin.take().context("proxy stdin")?;
         let output = BufReader::new(child.stdout.take().context("proxy stdout")?);
-        let mut p = Proxy { child, input, output };
+        Ok(Proxy { child, input, output })
+    }
+
+    /// With `prestart`, starts the next program's processes now, so that they are up when it
+    /// comes; one that cannot start now is started (and its error reported) by the next
+    /// [`Self::run`].
+    pub fn prestart_next(&mut self) {
+        if self.prestart && self.next.is_none() {
+            self.next = self.launch().ok();
+        }
+    }
+
+    /// Waits until a proxy has started (it says `ready`).
+    fn proxy_ready(&self, p: &mut Proxy) -> anyhow::Result<()> {
         let line = read_line_within(&mut p.output, Duration::from_secs(30));
         if !line.as_ref().is_ok_and(|l| l.contains("\"ready\"")) {
             bail!("the robo proxy did not start: {}", tail(&self.cfg.log_dir.join("proxy.log"), 600).trim());
         }
-        Ok(p)
+        Ok(())
     }
 
-    /// A command for the host's own proxy (`observe`, `reset`).
-    pub fn host_cmd(&mut self, v: serde_json::Value) -> anyhow::Result<serde_json::Value> {
-        if self.host.is_none() {
-            self.prepare()?;
-            let (ours, _unused) = UnixStream::pair()?;
-            self.host = Some(self.spawn_proxy(&ours)?);
-        }
-        let Some(p) = self.host.as_mut() else { bail!("no proxy") };
-        match p.cmd(&v, Duration::from_secs(60)) {
-            Ok(r) => Ok(r),
-            Err(e) => {
-                self.host = None;
-                Err(e)
-            }
-        }
-    }
-
-    /// Runs one program in a fresh confined worker with its own proxy; never fails because of
-    /// what the program does. The worker is gone when this returns.
-    pub fn run(&mut self, code: &str, name: &str, budget: Budget) -> anyhow::Result<ExecResult> {
+    /// Starts a program's proxy and confined worker without waiting for them: the next program's
+    /// come up (two Python interpreters, the sandbox applied) while the current one runs, and
+    /// [`Self::run`] takes them. On by default (`prestart`); a worker started this way that no
+    /// program uses is stopped on drop.
+    fn launch(&mut self) -> anyhow::Result<Launched> {
         self.prepare()?;
         self.starts += 1;
-        let limits = self.cfg.limits.clone();
         let (robo_host, robo_worker) = UnixStream::pair()?;
-        let (mut ctl, ctl_worker) = UnixStream::pair()?;
-        let mut proxy = self.spawn_proxy(&robo_host)?;
+        let (ctl, ctl_worker) = UnixStream::pair()?;
+        let proxy = self.spawn_proxy(&robo_host)?;
         drop(robo_host);
-        proxy.cmd(
-            &serde_json::json!({"cmd": "begin", "budget": budget.control_steps, "observe_only": budget.observe_only}),
-            Duration::from_secs(30),
-        )?;
-
         let name_cg = format!("{}-{}-{}", self.cfg.instance, std::process::id(), self.starts);
-        let cgroup = make_cgroup(&name_cg, limits.pids);
+        let cgroup = make_cgroup(&name_cg, self.cfg.limits.pids);
         let policy = serde_json::to_string(&self.policy(cgroup.clone())?)?;
         let (status_r, status_w) = std::io::pipe()?;
-        let out_path = self.cfg.log_dir.join("worker.out");
-        let err_path = self.cfg.log_dir.join("worker.err");
+        // One pair of files per worker: the next one starts while this one still writes.
+        let out_path = self.cfg.log_dir.join(format!("worker-{}.out", self.starts));
+        let err_path = self.cfg.log_dir.join(format!("worker-{}.err", self.starts));
         let mut cmd = Command::new(crate::sibling("r2g-sandbox")?);
         cmd.arg(policy)
             .arg("5")
@@ -414,7 +452,51 @@ impl Worker {
         let spawned = cmd.spawn();
         // Our copies of the worker's ends go now, so its exit closes them for good.
         drop((cmd, ctl_worker, robo_worker, status_w));
-        let mut worker = spawned.context("starting r2g-sandbox")?;
+        let worker = spawned.context("starting r2g-sandbox")?;
+        Ok(Launched { proxy, ctl, worker: Some(worker), cgroup, status_r: Some(status_r), out_path, err_path })
+    }
+
+    /// A command for the host's own proxy (`observe`, `reset`).
+    pub fn host_cmd(&mut self, v: serde_json::Value) -> anyhow::Result<serde_json::Value> {
+        if self.host.is_none() {
+            self.prepare()?;
+            let (ours, _unused) = UnixStream::pair()?;
+            let mut p = self.spawn_proxy(&ours)?;
+            self.proxy_ready(&mut p)?;
+            self.host = Some(p);
+        }
+        let Some(p) = self.host.as_mut() else { bail!("no proxy") };
+        match p.cmd(&v, Duration::from_secs(60)) {
+            Ok(r) => Ok(r),
+            Err(e) => {
+                self.host = None;
+                Err(e)
+            }
+        }
+    }
+
+    /// Runs one program in a fresh confined worker with its own proxy; never fails because of
+    /// what the program does. The worker is gone when this returns.
+    pub fn run(&mut self, code: &str, name: &str, budget: Budget) -> anyhow::Result<ExecResult> {
+        let started = Instant::now();
+        let limits = self.cfg.limits.clone();
+        let mut launched = match self.next.take() {
+            Some(l) => l,
+            None => self.launch()?,
+        };
+        // The next program's processes come up while this one runs.
+        self.prestart_next();
+        self.proxy_ready(&mut launched.proxy)?;
+        launched.proxy.cmd(
+            &serde_json::json!({"cmd": "begin", "budget": budget.control_steps, "observe_only": budget.observe_only}),
+            Duration::from_secs(30),
+        )?;
+        let (Some(mut worker), Some(status_r)) = (launched.worker.take(), launched.status_r.take()) else {
+            bail!("a launched worker was used twice");
+        };
+        let cgroup = launched.cgroup.take();
+        let (out_path, err_path) = (launched.out_path.clone(), launched.err_path.clone());
+        let (proxy, ctl) = (&mut launched.proxy, &mut launched.ctl);
         let pgid = worker.id() as i32;
         let cleanup = |worker: &mut Child| {
             // SAFETY: the worker's own process group, which we created; it cannot leave it.
@@ -460,7 +542,7 @@ impl Worker {
             })
         };
         let t0 = Instant::now();
-        let sent = send_frame(&mut ctl, &serde_json::json!({"code": code, "name": name}));
+        let sent = send_frame(ctl, &serde_json::json!({"code": code, "name": name}));
         let mut killed_for: Option<String> = sent.err().map(|e| format!("the worker did not take the program: {e}"));
         let status = loop {
             if killed_for.is_some() {
@@ -518,6 +600,7 @@ impl Worker {
             }
         };
         r.wall_s = wall_s;
+        r.host_s = (started.elapsed().as_secs_f64() - wall_s).max(0.0);
         // Cap what goes back into prompts, whatever the worker claimed.
         for t in [&mut r.stdout, &mut r.stderr] {
             cap_text(t, 64 * 1024);
@@ -533,7 +616,7 @@ impl Worker {
                 }
             }
         }
-        drop(proxy);
+        drop(launched);
         if r.violation.is_none() {
             r.violation = classify(&r, &limits);
         }
@@ -547,6 +630,7 @@ impl Worker {
         r.control_steps = n("steps");
         r.robot_calls = n("calls");
         r.budget_refusals = n("refused");
+        r.calls = v.get("log").and_then(|l| l.as_array()).cloned().unwrap_or_default();
     }
 }
 

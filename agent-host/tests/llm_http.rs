@@ -48,6 +48,7 @@ impl Server {
             max_tokens: 1024,
             timeout_s,
             retries,
+            cassette: None,
         };
         Client::new(cfg).expect("client")
     }
@@ -160,4 +161,63 @@ fn malformed_non_json_and_endless_bodies_fail_with_a_precise_error() {
         other => panic!("expected the body limit, got {:?}", other.map(|c| c.text)),
     }
     assert!(t0.elapsed().as_secs_f64() < 20.0, "stopped by the 16 MiB body limit, not the timeout");
+}
+
+/// Records a conversation from the scripted server over HTTP, stops the server, and replays it
+/// from the cassette alone: the same answers and token counts, for both wire formats; a
+/// re-encoded image hits the same answer; a changed request fails with its key.
+#[test]
+fn a_recorded_conversation_replays_without_the_server() {
+    use agent_host::cassette::{CassetteMode, CassetteSpec};
+    let dir = std::env::temp_dir().join(format!("r2g-llm-cassette-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("tmp");
+    for provider in ["openai", "anthropic"] {
+        let path = dir.join(format!("{provider}.jsonl"));
+        let live: Vec<_> = {
+            let s = Server::start();
+            let mut cfg = s.client(provider, "", 30.0, 0).cfg;
+            cfg.cassette = Some(CassetteSpec { mode: CassetteMode::Record, path: path.clone() });
+            let c = Client::new(cfg).expect("recording client");
+            (0..3).map(|turns| c.complete("system prompt", &conversation(turns)).expect("live")).collect()
+        }; // the server is gone from here on
+        let replay = EndpointConfig {
+            provider: "openai".into(),
+            base_url: "http://127.0.0.1:1".into(), // nothing listens: it must not be used
+            model: "replayed".into(),
+            api_key_env: Some("R2G_UNSET_KEY_FOR_REPLAY".into()), // nor need a key
+            temperature: 1.0,
+            max_tokens: 1,
+            timeout_s: 1.0,
+            retries: 0,
+            cassette: Some(CassetteSpec { mode: CassetteMode::Replay, path: path.clone() }),
+        };
+        let c = Client::new(replay).expect("replaying client");
+        for (turns, l) in live.iter().enumerate() {
+            let r = c.complete("system prompt", &conversation(turns)).expect("replayed");
+            assert_eq!((&r.text, &r.usage, r.attempts), (&l.text, &l.usage, 0), "{provider} turn {turns}");
+        }
+        assert!(live[1].usage.cached > 0, "{provider}: the recorded cache counts are replayed");
+        // The same pixels in another PNG encoding (RGBA, best compression).
+        let mut msgs = conversation(1);
+        let mut rgba = Vec::new();
+        {
+            let mut e = png::Encoder::new(&mut rgba, 2, 2);
+            e.set_color(png::ColorType::Rgba);
+            e.set_compression(png::Compression::High);
+            let mut w = e.write_header().expect("header");
+            w.write_image_data(&[255, 0, 0, 255].repeat(4)).expect("pixels");
+        }
+        assert_ne!(rgba, png());
+        msgs[2].parts[1] = Part::Png(rgba);
+        assert_eq!(c.complete("system prompt", &msgs).expect("same pixels").text, live[1].text);
+        // Another system prompt is another request.
+        match c.complete("system prompt!", &conversation(1)) {
+            Err(LlmError::Cassette(e)) => {
+                let e = e.to_string();
+                assert!(e.contains("is not in the cassette") && e.contains("system differs from character 13"), "{e}")
+            }
+            other => panic!("{provider}: expected a miss, got {:?}", other.map(|c| c.text)),
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }

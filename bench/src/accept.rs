@@ -51,7 +51,7 @@ fn chunk(id: u64, client: u64, actions: &[[f64; WAYPOINT_LEN]]) -> Box<Request> 
         kind: RequestKind::Chunk as u32,
         control_type: ControlType::EePose as u32,
         len: actions.len() as u32,
-        _pad: 0,
+        step_ticks: 0,
         freq_hz: 0.0,
         actions: [[0.0; WAYPOINT_LEN]; MAX_CHUNK],
     });

@@ -18,12 +18,20 @@ pub fn run(episodes: u32) -> anyhow::Result<Value> {
     let root = session::root();
     let gym = "pick_block_plate";
     let dir = std::env::temp_dir().join(format!("r2g-bench-agent-{}", std::process::id()));
+    // The host as it was (R2G_HOST_BASELINE=1: each program's proxy and sandbox started when the
+    // program comes, a new episode's first frame and the runtime's info for a new agent waiting
+    // for their periodic slots) and as it is, episodes alternating in one run so that both see
+    // the same machine.
     let mut rows = Vec::new();
-    for i in 0..episodes.max(1) {
+    let mut before = Vec::new();
+    for i in 0..2 * episodes.max(1) {
+        let prestart = i % 2 == 1;
+        // The instance's processes inherit it: the baseline is the whole host path as it was.
+        std::env::set_var("R2G_HOST_BASELINE", if prestart { "0" } else { "1" });
         let o = EpisodeOpts {
             gym: gym.into(),
             llm: "scripted".into(),
-            provider: if i % 2 == 0 { "openai" } else { "anthropic" }.into(),
+            provider: if (i / 2) % 2 == 0 { "openai" } else { "anthropic" }.into(),
             max_decisions: 50,
             control_steps: 600,
             wall: false,
@@ -33,13 +41,20 @@ pub fn run(episodes: u32) -> anyhow::Result<Value> {
             memory: Some(dir.join("memory")),
             seed: 0,
             perturb: None,
+            skills: None,
+            library: None,
         };
         let r = session::episode(&o)?;
         if !r.success {
             bail!("benchmark episode {i} did not succeed: {}", r.stop_reason);
         }
-        rows.push(r);
+        if prestart {
+            rows.push(r);
+        } else {
+            before.push(r);
+        }
     }
+    std::env::remove_var("R2G_HOST_BASELINE");
     // Baseline: the same programs, bare.
     let programs = session::scripted_programs(&root, gym)?;
     let scratch = dir.join("bare");
@@ -77,14 +92,36 @@ pub fn run(episodes: u32) -> anyhow::Result<Value> {
     let _ = std::fs::remove_dir_all(&dir);
 
     let mean = |f: &dyn Fn(&EpisodeResult) -> f64| rows.iter().map(f).sum::<f64>() / rows.len() as f64;
+    let host_before = before.iter().map(|r| r.overhead_s / f64::from(r.responses.max(1)) * 1e3).sum::<f64>()
+        / before.len().max(1) as f64;
+    // Medians too: on a shared machine one slow episode moves a mean.
+    let median = |v: &[EpisodeResult]| {
+        let mut x: Vec<f64> = v.iter().map(|r| r.overhead_s / f64::from(r.responses.max(1)) * 1e3).collect();
+        x.sort_by(f64::total_cmp);
+        x.get(x.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    let (median_after, median_before) = (median(&rows), median(&before));
     let per_decision = mean(&|r| (r.wall_s - r.model_s) / f64::from(r.responses.max(1)) * 1e3);
     let host = mean(&|r| r.overhead_s / f64::from(r.responses.max(1)) * 1e3);
     let exec = mean(&|r| r.exec_s);
+    let per = |f: &dyn Fn(&EpisodeResult) -> f64| mean(&|r| f(r) / f64::from(r.responses.max(1)) * 1e3);
+    let split = json!({
+        "setup_ms": per(&|r| r.host_split.setup_s),
+        "program_start_ms": per(&|r| r.host_split.program_start_s),
+        "observe_ms": per(&|r| r.host_split.observe_s),
+        "records_ms": per(&|r| r.host_split.records_s),
+        "other_ms": per(&|r| r.host_split.other_s),
+    });
     let figures = json!({
+        "host_split_per_decision": split,
         "episodes": rows.len(),
         "responses": mean(&|r| f64::from(r.responses)),
         "overhead_per_decision_ms": per_decision,
         "host_only_per_decision_ms": host,
+        "host_only_per_decision_ms_without_prestart": host_before,
+        "host_only_after_over_before": host / host_before,
+        "host_only_median_ms": median_after,
+        "host_only_median_ms_without_prestart": median_before,
         "model_per_decision_ms": mean(&|r| r.model_s / f64::from(r.responses.max(1)) * 1e3),
         "sandboxed_programs_s": exec,
         "bare_programs_s": bare_s,
@@ -94,6 +131,17 @@ pub fn run(episodes: u32) -> anyhow::Result<Value> {
     println!("agent loop on {gym}, scripted endpoint on loopback, lockstep ({} episodes)", rows.len());
     println!("{:<44} {:>10}", "per decision: everything but model time", format!("{per_decision:.1} ms"));
     println!("{:<44} {:>10}", "per decision: host only (no model, no program)", format!("{host:.1} ms"));
+    println!("{:<44} {:>10}", "  the same, the host as it was (baseline)", format!("{host_before:.1} ms"));
+    println!("{:<44} {:>10}", "  medians: now / the baseline", format!("{median_after:.1} / {median_before:.1} ms"));
+    for (label, key) in [
+        ("  episode start (reset, first observation)", "setup_ms"),
+        ("  program proxy and sandbox start/stop", "program_start_ms"),
+        ("  observation after a program (PNGs)", "observe_ms"),
+        ("  records (files, synced transcript)", "records_ms"),
+        ("  the rest (messages, feedback, memory)", "other_ms"),
+    ] {
+        println!("{label:<44} {:>10}", format!("{:.1} ms", split[key].as_f64().unwrap_or(f64::NAN)));
+    }
     println!("{:<44} {:>10}", "stage programs in the sandbox (per episode)", format!("{exec:.2} s"));
     println!("{:<44} {:>10}", "same programs bare (python + robo)", format!("{bare_s:.2} s"));
     println!("{figures}");

@@ -53,7 +53,7 @@ fn empty_request(id: u64, client: u64) -> Box<Request> {
         kind: RequestKind::Chunk as u32,
         control_type: ControlType::Joint as u32,
         len: 0,
-        _pad: 0,
+        step_ticks: 0,
         freq_hz: 0.0,
         actions: [[0.0; WAYPOINT_LEN]; MAX_CHUNK],
     })

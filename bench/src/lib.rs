@@ -3,6 +3,7 @@
 pub mod accept;
 pub mod agent;
 pub mod all;
+pub mod batch;
 pub mod control;
 pub mod fci;
 pub mod ik;
@@ -10,6 +11,7 @@ pub mod ipc;
 pub mod perception;
 pub mod robo;
 pub mod sim;
+pub mod skills;
 pub mod soak;
 pub mod tick;
 

@@ -11,6 +11,7 @@ use runtime::launch::{self, Instance, UpOptions};
 
 mod kin;
 mod service;
+mod skills_cmd;
 
 /// Counts allocations inside ticks, so `bench tick-compute` can report them.
 #[global_allocator]
@@ -71,6 +72,10 @@ enum Cmd {
         fci_gripper: bool,
         #[command(flatten)]
         placement: PlacementArgs,
+        /// Serve gymnasium environments (the `r2g_gym` package's live mode): the evaluator's
+        /// verdict and the episode seed on the instance's `env/` services, which `robo` never opens.
+        #[arg(long, conflicts_with = "fci")]
+        env: bool,
     },
     /// Run one program in the sandbox against a live gym (`r2g up ... --instance NAME`) and
     /// print a JSON result: stdout, stderr, exit, violation, control steps, what was enforced.
@@ -105,6 +110,14 @@ enum Cmd {
     Episode {
         #[command(flatten)]
         opts: EpisodeArgs,
+        /// After the episode, extract skills from it into the library (as `r2g skills extract`).
+        #[arg(long)]
+        learn: bool,
+        /// Endpoint for the extraction (default: scripted, the gym's recorded extraction answers).
+        #[arg(long, default_value = "scripted")]
+        learn_llm: String,
+        #[command(flatten)]
+        admit: skills_cmd::AdmitArgs,
     },
     /// Several episodes and their metrics (success rate, responses, tokens, time split). Exits 1
     /// when no episode could run at all (every one ended in an error, e.g. an unreachable
@@ -114,6 +127,23 @@ enum Cmd {
         episodes: u32,
         #[command(flatten)]
         opts: EpisodeArgs,
+        /// `learn`: the paper's protocol — per seed, an episode without skills, extraction from
+        /// it, then an episode on the same seed with the selected skills; figures per arm.
+        #[arg(long = "skills-protocol", value_name = "learn")]
+        protocol: Option<String>,
+        /// Endpoint for the extractions of `--skills-protocol learn`.
+        #[arg(long, default_value = "scripted")]
+        learn_llm: String,
+        #[command(flatten)]
+        admit: skills_cmd::AdmitArgs,
+        #[command(flatten)]
+        fleet: FleetArgs,
+    },
+    /// The skill library (robot-skill/skills by default): list, show, extract from a run,
+    /// admit, run without a model, select.
+    Skills {
+        #[command(subcommand)]
+        which: skills_cmd::SkillsCmd,
     },
     /// Write (or rewrite) the static HTML viewer of a run folder.
     View { run_dir: std::path::PathBuf },
@@ -131,10 +161,17 @@ enum Cmd {
     /// tick), then judge the native trace. Ends with the evaluator's JSON line; exit status 0
     /// on success, 1 when the task failed.
     Replay {
-        /// Gym name, gym folder, or scene file.
-        gym: String,
+        /// Gym name, gym folder, or scene file; with --seeds, --workers or --ray several, or
+        /// `all` for the whole pack.
+        #[arg(required = true)]
+        gyms: Vec<String>,
         #[command(flatten)]
         placement: PlacementArgs,
+        /// Replay each gym with seeds 0..N, as one job per replay (a summary JSON at the end).
+        #[arg(long)]
+        seeds: Option<u64>,
+        #[command(flatten)]
+        fleet: FleetArgs,
         /// Post no actions at all: the evaluator must then report failure.
         #[arg(long)]
         do_nothing: bool,
@@ -299,7 +336,10 @@ struct EpisodeArgs {
     /// Gym name (see `r2g gyms`), gym folder, or scene file.
     gym: String,
     /// An endpoint TOML file (provider, base_url, model, api_key_env, ...), "scripted" (the
-    /// gym's recorded conversation) or "scripted:<conversation.json>".
+    /// gym's recorded conversation), "scripted:<conversation.json | cassette.jsonl>" (answers by
+    /// turn), "record:<endpoint.toml>" (the endpoint, each answer kept in <run>/cassette.jsonl)
+    /// or "replay:<cassette.jsonl>" (the recorded answers, no network; a request not recorded
+    /// is an error).
     #[arg(long, default_value = "scripted")]
     llm: String,
     /// Wire format for `--llm scripted`: openai or anthropic.
@@ -326,6 +366,30 @@ struct EpisodeArgs {
     memory: Option<std::path::PathBuf>,
     #[command(flatten)]
     placement: PlacementArgs,
+    /// `use`: give the episode skills selected from the library (see --library); `off`: none.
+    #[arg(long, default_value = "off", value_parser = ["off", "use"])]
+    skills: String,
+    /// The skill library (default: robot-skill/skills).
+    #[arg(long)]
+    library: Option<std::path::PathBuf>,
+}
+
+impl EpisodeArgs {
+    fn library(&self) -> std::path::PathBuf {
+        self.library.clone().unwrap_or_else(skills::learn::default_library)
+    }
+
+    /// The episode options, with the library's skills when `--skills use`.
+    fn episode_opts(self) -> anyhow::Result<session::EpisodeOpts> {
+        let lib = self.library();
+        let use_skills = self.skills == "use";
+        let o: session::EpisodeOpts = self.try_into()?;
+        if use_skills {
+            skills::learn::with_skills(&o, &lib)
+        } else {
+            Ok(o)
+        }
+    }
 }
 
 impl TryFrom<EpisodeArgs> for session::EpisodeOpts {
@@ -346,8 +410,23 @@ impl TryFrom<EpisodeArgs> for session::EpisodeOpts {
             memory: a.memory,
             seed: a.placement.seed,
             perturb: a.placement.perturb.map(|p| p.to_string()),
+            skills: None,
+            library: None,
         })
     }
+}
+
+/// Where the episodes of a batch run (default: one after the other in this process).
+#[derive(clap::Args, Debug, Clone)]
+struct FleetArgs {
+    /// Run the episodes as Ray tasks: `auto` (the running cluster, else a local one for this
+    /// batch) or a cluster's address (fleet/MULTINODE.md). Needs `ray` (requirements-ray.txt).
+    #[arg(long, value_name = "auto|ADDRESS")]
+    ray: Option<String>,
+    /// Run this many episodes at once on this machine, each in its own process group and
+    /// shared-memory prefix (no Ray); with --ray, at most this many at once on the cluster.
+    #[arg(long)]
+    workers: Option<usize>,
 }
 
 /// Options shared by `r2g kin fk` and `r2g kin ik`.
@@ -489,6 +568,24 @@ enum BenchCmd {
         #[arg(long, default_value_t = 10_000)]
         count: usize,
     },
+    /// Skill transfer: per gym, a skill extracted from one scripted episode, run without a model on
+    /// N seeds with the objects moved (default ±5 cm, ±30°), against the same procedure replaying
+    /// the episode's absolute targets, natively judged (gyms with recorded conversations).
+    Skills {
+        #[arg(long, value_delimiter = ',', default_value = "pick_block_plate")]
+        gyms: Vec<String>,
+        #[arg(long, default_value_t = 50)]
+        seeds: u64,
+        #[arg(long, default_value_t = 5001)]
+        first_seed: u64,
+        #[arg(long, default_value = "xy=0.05,yaw=30")]
+        perturb: sim_host::placement::Perturbation,
+        /// Runs at a time (more than the cores is oversubscription).
+        #[arg(long, default_value_t = 2)]
+        jobs: usize,
+        #[arg(long, default_value = "bench-report/skills")]
+        out: std::path::PathBuf,
+    },
     /// Physics in lockstep with the 1 kHz controller: real-time factor per gym while replaying
     /// its demonstration, beside MuJoCo stepping alone; and render time per 640×480 frame,
     /// RGB and RGB-D.
@@ -513,6 +610,20 @@ enum BenchCmd {
         /// Seconds between samples of RSS and tick health.
         #[arg(long, default_value_t = 5.0)]
         sample_s: f64,
+    },
+    /// Episodes per minute of lockstep demonstration replays and scripted agent episodes at 1, 2
+    /// and N workers, on local workers and as tasks of a local Ray cluster it starts and stops;
+    /// Ray's overhead per task and the parallel efficiency.
+    Batch {
+        /// The largest worker count (above the cores: oversubscription, labelled so).
+        #[arg(long, default_value_t = 4)]
+        workers: usize,
+        /// Replays per configuration.
+        #[arg(long, default_value_t = 8)]
+        replays: usize,
+        /// Scripted agent episodes per configuration.
+        #[arg(long, default_value_t = 4)]
+        agents: usize,
     },
     /// The receiving process of `r2g bench ipc` (started by it).
     #[command(hide = true)]
@@ -542,6 +653,7 @@ fn main() {
             fci,
             fci_gripper,
             placement,
+            env,
         } => {
             // Only `up` waits for the stop signals to shut its instance down in order; every other
             // command ends at once on them, and its instances' processes follow (die_with_parent).
@@ -555,21 +667,90 @@ fn main() {
                 },
                 None => launch::RobotSide::Sim,
             };
-            up(&gym, mode, &instance, render_hz, trace_dir.as_deref(), rc, control_args, &side, &placement)
+            let mut sim_args: Vec<String> =
+                trace_dir.map(|d| vec!["--trace-dir".into(), d.display().to_string()]).unwrap_or_default();
+            if env {
+                sim_args.push("--env".into());
+            }
+            up(&gym, mode, &instance, render_hz, sim_args, rc, control_args, &side, &placement)
         }
         Cmd::Clear { instance } => runtime::operator::clear_fault(&instance).map(|(_cleared, reason)| {
             println!("{reason}");
             0
         }),
-        Cmd::Episode { opts } => opts.try_into().and_then(|o| session::episode(&o)).and_then(|r| {
-            println!("{}", serde_json::to_string(&r)?);
-            Ok(if r.success { 0 } else { 1 })
-        }),
-        Cmd::Batch { episodes, opts } => opts.try_into().and_then(|o| {
-            session::batch(&o, episodes, |i, r| match r {
-                Ok(r) => eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses),
-                Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),
+        Cmd::Episode { opts, learn, learn_llm, admit } => {
+            let library = opts.library();
+            opts.episode_opts().and_then(|o| session::episode(&o)).and_then(|r| {
+                println!("{}", serde_json::to_string(&r)?);
+                if learn {
+                    let lo = skills::learn::LearnOpts {
+                        admit: admit.opts(),
+                        ..skills::learn::LearnOpts::new(library, &learn_llm)
+                    };
+                    let l = skills::learn::learn(std::path::Path::new(&r.run_dir), &lo)?;
+                    eprintln!(
+                        "r2g episode --learn: wrote {:?}, dropped {}, admissions {:?}",
+                        l.merge.written,
+                        l.merge.dropped.len(),
+                        l.admissions.iter().map(|a| (&a.skill, a.validated)).collect::<Vec<_>>()
+                    );
+                }
+                Ok(if r.success { 0 } else { 1 })
             })
+        }
+        Cmd::Skills { which } => skills_cmd::run(which),
+        Cmd::Batch { episodes, opts, protocol: Some(p), learn_llm, admit, fleet } => {
+            if p != "learn" {
+                eprintln!("r2g: error: --skills-protocol takes `learn`");
+                std::process::exit(2);
+            }
+            let library = opts.library();
+            let lo =
+                skills::learn::LearnOpts { admit: admit.opts(), ..skills::learn::LearnOpts::new(library, &learn_llm) };
+            let backend = fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers);
+            opts.try_into().and_then(|o: session::EpisodeOpts| {
+                skills::learn::protocol(&o, episodes, &lo, backend.as_ref(), |arm, i, r| match r {
+                    Ok(v) => {
+                        eprintln!("r2g batch: seed {i} {arm}: success {} in {} responses", v["success"], v["responses"])
+                    }
+                    Err(e) => eprintln!("r2g batch: seed {i} {arm}: {e:#}"),
+                })
+                .map(|v| {
+                    eprintln!("{}", v["label"].as_str().unwrap_or_default());
+                    eprintln!(
+                        "{:<16} {:>8} {:>10} {:>11} {:>10} {:>8}",
+                        "arm", "success", "responses", "tokens in", "tokens out", "wall s"
+                    );
+                    for (name, k) in [("without skills", "without_skills"), ("with skills", "with_skills")] {
+                        let a = &v[k];
+                        let f = |m: &str| a[m].as_f64().unwrap_or(0.0);
+                        eprintln!(
+                            "{name:<16} {:>8.2} {:>10.1} {:>11.0} {:>10.0} {:>8.1}",
+                            f("success_rate"),
+                            f("responses_mean"),
+                            f("tokens_in_mean"),
+                            f("tokens_out_mean"),
+                            f("wall_s_mean")
+                        );
+                    }
+                    println!("{v}");
+                    0
+                })
+            })
+        }
+        Cmd::Batch { episodes, opts, fleet, .. } => opts.episode_opts().and_then(|o| {
+            match fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers) {
+                None => session::batch(&o, episodes, |i, r| match r {
+                    Ok(r) => eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses),
+                    Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),
+                }),
+                Some(b) => session::batch_on(&o, episodes, &b, |i, r| match r.get("error") {
+                    Some(e) => eprintln!("r2g batch: episode {i}: {}", e.as_str().unwrap_or("failed")),
+                    None => {
+                        eprintln!("r2g batch: episode {i}: success {} in {} responses", r["success"], r["responses"])
+                    }
+                }),
+            }
             .map(|v| {
                 println!("{v}");
                 // Failed tasks are results; a batch none of whose episodes could run at all (the
@@ -591,7 +772,26 @@ fn main() {
         }
         Cmd::Gyms => gyms(),
         Cmd::Service { which } => service::run(which),
-        Cmd::Replay { gym, placement, do_nothing, out } => replay(&gym, &placement, do_nothing, &out),
+        Cmd::Replay { gyms, placement, seeds, fleet, do_nothing, out } => {
+            let backend = fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers);
+            match (gyms.as_slice(), backend, seeds) {
+                ([gym], None, None) if gym != "all" => replay(gym, &placement, do_nothing, &out),
+                (_, _, _) if placement.perturb.is_some() => Err(anyhow::anyhow!(
+                    "--perturb applies to one replay (one gym, --seed N); give no --seeds, --workers or --ray with it"
+                )),
+                (_, backend, seeds) => {
+                    let gyms = if gyms.iter().any(|g| g == "all") { launch::gym_names() } else { gyms };
+                    let backend = backend.unwrap_or(fleet::Backend::Local(1));
+                    std::path::absolute(&out)
+                        .map_err(anyhow::Error::from)
+                        .and_then(|out| fleet::replays(&gyms, seeds.unwrap_or(1), &backend, &out))
+                        .map(|v| {
+                            println!("{v}");
+                            i32::from(v["success_rate"].as_f64() != Some(1.0))
+                        })
+                }
+            }
+        }
         Cmd::AuthorDemo { gym } => author_demo(&gym),
         Cmd::Import { which } => import(which),
         Cmd::Augment { gym, candidates, seed, out, jobs, shrink_tries, no_sheet, factors, levels } => (|| {
@@ -619,6 +819,10 @@ fn main() {
         })(),
         Cmd::Validate { gym, seed, out, keep_trace } => validate(&gym, seed, out, keep_trace),
         Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => bench::sim::run(&gyms, frames).map(|_| 0),
+        Cmd::Bench { which: BenchCmd::Skills { gyms, seeds, first_seed, perturb, jobs, out } } => {
+            let o = bench::skills::Options { gyms, seeds, first_seed, perturb: perturb.to_string(), jobs, out };
+            bench::skills::run(&o).map(|_| 0)
+        }
         Cmd::Kin { which: KinCmd::Fk { args } } => kin::run(false, &args.robot, &args.tcp, args.frame.as_deref()),
         Cmd::Kin { which: KinCmd::Ik { args } } => kin::run(true, &args.robot, &args.tcp, args.frame.as_deref()),
         Cmd::Bench { which: BenchCmd::Ik { targets, count } } => bench::ik::run(targets.as_deref(), count).map(|_| 0),
@@ -642,6 +846,9 @@ fn main() {
         }
         Cmd::Bench { which: BenchCmd::Soak { minutes, gym, stall_s, sample_s } } => {
             bench::soak::run(&bench::soak::Options { minutes, gym, stall_s, sample_s }).map(|_| 0)
+        }
+        Cmd::Bench { which: BenchCmd::Batch { workers, replays, agents } } => {
+            bench::batch::run(workers, replays, agents).map(|_| 0)
         }
         Cmd::Bench { which: BenchCmd::Ipc { only } } => bench::ipc::run(only.as_deref()).map(|_| 0),
         Cmd::Bench { which: BenchCmd::IpcPeer { transport, payload, addr, cpu } } => (|| {
@@ -772,14 +979,14 @@ fn up(
     mode: ModeArg,
     instance: &str,
     render_hz: f64,
-    trace_dir: Option<&std::path::Path>,
+    sim_args: Vec<String>,
     robot_config: std::path::PathBuf,
     control_args: Vec<String>,
     side: &launch::RobotSide,
     placement: &PlacementArgs,
 ) -> anyhow::Result<i32> {
     placement.check()?;
-    let mut sim_args = trace_dir.map(|d| vec!["--trace-dir".into(), d.display().to_string()]).unwrap_or_default();
+    let mut sim_args = sim_args;
     sim_args.extend(placement.sim_args());
     let opts = UpOptions {
         scene: launch::resolve_scene(gym)?,

@@ -10,7 +10,7 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 /// Bumped whenever any payload below changes layout or meaning. Every service carries it as
 /// the attribute `r2g.schema`; a process of another build is refused when it connects.
-pub const SCHEMA_VERSION: u32 = 7;
+pub const SCHEMA_VERSION: u32 = 8;
 /// Attribute key that carries [`SCHEMA_VERSION`] on every service.
 pub const SCHEMA_ATTRIBUTE: &str = "r2g.schema";
 
@@ -180,6 +180,11 @@ pub enum RequestKind {
     Reset = 2,
     /// Operator only (`r2g clear`): clears an `operator_required` fault (Franka profile).
     ClearFault = 3,
+    /// One fixed control period (a gymnasium environment's step): the request's waypoints, if
+    /// any, are taken as a chunk, and the runtime then runs exactly `step_ticks` ticks and
+    /// replies [`Status::Stepped`]. In lockstep, once a client steps, simulated time advances
+    /// only inside steps until the next reset.
+    Step = 4,
 }
 
 /// agent → runtime: an action chunk or a reset.
@@ -197,7 +202,8 @@ pub struct Request {
     pub control_type: u32,
     /// Waypoints used in `actions`.
     pub len: u32,
-    pub _pad: u32,
+    /// [`RequestKind::Step`]: ticks the step lasts (ignored by other kinds).
+    pub step_ticks: u32,
     /// Waypoint rate in Hz; 0 means the profile default (20 Hz).
     pub freq_hz: f64,
     pub actions: [[f64; WAYPOINT_LEN]; MAX_CHUNK],
@@ -213,6 +219,8 @@ pub enum Status {
     Failed = 4,
     RecoveredReplanRequired = 5,
     OperatorRequired = 6,
+    /// A [`RequestKind::Step`]'s period is over (its chunk may still be moving).
+    Stepped = 7,
 }
 
 impl Status {
@@ -224,6 +232,7 @@ impl Status {
             4 => Self::Failed,
             5 => Self::RecoveredReplanRequired,
             6 => Self::OperatorRequired,
+            7 => Self::Stepped,
             _ => return None,
         })
     }
@@ -235,6 +244,7 @@ impl Status {
             Self::Failed => "failed",
             Self::RecoveredReplanRequired => "recovered_replan_required",
             Self::OperatorRequired => "operator_required",
+            Self::Stepped => "stepped",
         }
     }
 }
@@ -546,6 +556,52 @@ pub struct CameraFrame {
     pub depth_m: [f32; MAX_IMAGE_WIDTH * MAX_IMAGE_HEIGHT],
 }
 
+/// What a gymnasium environment asks the sim-host of its instance ([`Services::env_query`]).
+#[repr(u32)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EnvQueryKind {
+    /// Judge the episode so far: the evaluator's verdict on the trace up to now.
+    Evaluate = 1,
+    /// The augmentation seed of every episode from the next reset on.
+    Seed = 2,
+}
+
+/// environment → sim-host, only where the sim-host serves environments (`r2g up --env`).
+/// Nothing of the agent side (`robo`, the sandbox) opens these services.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+#[type_name("r2g.EnvQuery.v1")]
+pub struct EnvQuery {
+    /// Chosen by the environment; the answer carries it back.
+    pub id: u64,
+    /// An [`EnvQueryKind`] as u32.
+    pub kind: u32,
+    pub _pad: u32,
+    /// [`EnvQueryKind::Seed`]: the seed.
+    pub seed: u64,
+}
+
+/// Bytes of [`EnvAnswer::json`].
+pub const ENV_ANSWER_LEN: usize = 4096;
+
+/// sim-host → environment: the answer to an [`EnvQuery`]. The verdict is the evaluator's JSON
+/// (`sim_host::trace::Evaluation`), judged on the native trace inside the sim-host.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[type_name("r2g.EnvAnswer.v1")]
+pub struct EnvAnswer {
+    pub id: u64,
+    /// The reset id of the episode judged.
+    pub reset_id: u64,
+    /// Simulated time of the last state judged, s.
+    pub sim_time_s: f64,
+    /// 1: the task's success rules hold.
+    pub success: u32,
+    /// Bytes used in `json` (0 for a seed's answer).
+    pub len: u32,
+    pub json: [u8; ENV_ANSWER_LEN],
+}
+
 /// Writes formatted text into a fixed buffer, dropping what does not fit (at a char boundary).
 struct FixedWriter<'a> {
     buf: &'a mut [u8],
@@ -668,6 +724,18 @@ impl Services {
     /// Wakes agents when a reply or frame is published.
     pub fn agent_wake(&self) -> String {
         self.name("agent/wake")
+    }
+    /// A gymnasium environment's questions to the sim-host (`r2g up --env` only).
+    pub fn env_query(&self) -> String {
+        self.name("env/query")
+    }
+    /// The sim-host's answers to them.
+    pub fn env_answer(&self) -> String {
+        self.name("env/answer")
+    }
+    /// Wakes the environment when an answer is published.
+    pub fn env_wake(&self) -> String {
+        self.name("env/wake")
     }
 }
 
@@ -921,7 +989,11 @@ mod tests {
         assert_eq!(core::mem::size_of::<GripperState>(), 56 + ERROR_TEXT_LEN);
         assert_eq!(core::mem::size_of::<Reply>(), 48 + REASON_LEN);
         assert_eq!(core::mem::size_of::<RuntimeInfo>(), 392 + CALIBRATION_LEN);
-        assert_eq!(SCHEMA_VERSION, 7);
+        // Schema 8: steps (RequestKind::Step, Request::step_ticks, Status::Stepped) and the
+        // environment's own services (EnvQuery, EnvAnswer).
+        assert_eq!(core::mem::size_of::<EnvQuery>(), 24);
+        assert_eq!(core::mem::size_of::<EnvAnswer>(), 32 + ENV_ANSWER_LEN);
+        assert_eq!(SCHEMA_VERSION, 8);
     }
 }
 

@@ -115,6 +115,15 @@ pub fn run_dir(instance: &str) -> std::path::PathBuf {
     base.join(instance)
 }
 
+/// `R2G_HOST_BASELINE=1`: the agent host's path as it was before its start-up work was
+/// overlapped (no programs started ahead, a new episode's first frame and the info for new
+/// agents waiting for their periodic slot), so that `r2g bench agent` measures both in one run.
+/// Read when asked (the benchmark switches it between episodes of one process), off the tick;
+/// never set outside that benchmark.
+pub fn host_baseline() -> bool {
+    std::env::var_os("R2G_HOST_BASELINE").is_some_and(|v| v == "1")
+}
+
 /// Node names of the processes of one instance.
 pub fn sim_node(instance: &str) -> String {
     format!("r2g-sim-{instance}")

@@ -6,8 +6,10 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use controllers::LimiterConfig;
-use ipc_schema::{ControlType, JointCommand, Reply, Request, RequestKind, Status, MAX_CHUNK, WAYPOINT_LEN};
-use runtime::controller::Controller;
+use ipc_schema::{
+    ControlType, JointCommand, Mode, Reply, Request, RequestKind, RobotState, Status, MAX_CHUNK, WAYPOINT_LEN,
+};
+use runtime::controller::{Controller, Forward};
 use sim_host::placement::Perturbation;
 use sim_host::trace::{evaluate, Evaluation, Trace};
 use sim_host::Sim;
@@ -21,6 +23,8 @@ pub struct Episode {
     seq: u64,
     last_cmd: u64,
     next_request: u64,
+    /// The last reset's id (0: the episode as loaded).
+    reset_id: u64,
     /// Ticks run (one per physics step).
     pub ticks: u64,
 }
@@ -28,24 +32,44 @@ pub struct Episode {
 impl Episode {
     /// Loads a scene and starts an episode from its initial state, augmented by `seed`.
     pub fn new(scene: &Path, seed: u64) -> anyhow::Result<Self> {
-        Self::perturbed(scene, seed, None)
+        Self::with_setup(scene, seed, None, LimiterConfig::default())
     }
 
     /// As [`Episode::new`], with free objects moved by a placement perturbation drawn from
-    /// `seed` (sim_host::placement).
+    /// `seed` (sim_host::placement), at this reset and every later one.
     pub fn perturbed(scene: &Path, seed: u64, perturbation: Option<Perturbation>) -> anyhow::Result<Self> {
+        Self::with_setup(scene, seed, perturbation, LimiterConfig::default())
+    }
+
+    /// [`Self::new`] with the limiter settings of a robot configuration
+    /// (`runtime::RobotConfig::limiter`: its step caps and chunk length), as `r2g-control` runs.
+    pub fn with_limits(scene: &Path, seed: u64, limits: LimiterConfig) -> anyhow::Result<Self> {
+        Self::with_setup(scene, seed, None, limits)
+    }
+
+    /// The episode with both: a placement perturbation and the limiter settings.
+    pub fn with_setup(
+        scene: &Path,
+        seed: u64,
+        perturbation: Option<Perturbation>,
+        limits: LimiterConfig,
+    ) -> anyhow::Result<Self> {
         let mut sim = Sim::load(scene).with_context(|| format!("loading scene {}", scene.display()))?;
         sim.seed = seed;
         sim.set_perturbation(perturbation)?;
         let (robot, safety) = runtime::scene_robot(scene)?;
-        let ctl = Controller::new(robot, LimiterConfig::default(), sim.scene.timestep_s).with_safety(safety);
+        let ctl = Controller::new(robot, limits, sim.scene.timestep_s).with_safety(safety);
         let mut trace = sim.new_trace();
         sim.record(&mut trace);
-        Ok(Self { sim, ctl, trace, seq: 1, last_cmd: 0, next_request: 1, ticks: 0 })
+        Ok(Self { sim, ctl, trace, seq: 1, last_cmd: 0, next_request: 1, reset_id: 0, ticks: 0 })
+    }
+
+    fn measure(&self) -> ipc_schema::SimState {
+        self.sim.measure(self.seq, self.last_cmd, self.reset_id)
     }
 
     fn tick(&mut self) -> Option<Reply> {
-        let state = self.sim.measure(self.seq, self.last_cmd, 0);
+        let state = self.measure();
         let (cmd, reply): (JointCommand, Option<Reply>) = self.ctl.tick(&state);
         self.last_cmd = cmd.seq;
         self.sim.step(&cmd);
@@ -59,20 +83,8 @@ impl Episode {
     pub fn run_chunk(&mut self, control: ControlType, actions: &[[f64; WAYPOINT_LEN]], freq_hz: f64) -> Reply {
         let id = self.next_request;
         self.next_request += 1;
-        let mut req = Request {
-            id,
-            client: 1,
-            kind: RequestKind::Chunk as u32,
-            control_type: control as u32,
-            len: actions.len().min(MAX_CHUNK) as u32,
-            _pad: 0,
-            freq_hz,
-            actions: [[0.0; WAYPOINT_LEN]; MAX_CHUNK],
-        };
-        for (dst, src) in req.actions.iter_mut().zip(actions) {
-            *dst = *src;
-        }
-        let state = self.sim.measure(self.seq, self.last_cmd, 0);
+        let req = request(id, RequestKind::Chunk, control, actions, freq_hz, 0);
+        let state = self.measure();
         let (reply, _) = self.ctl.request(&req, &state);
         if let Some(r) = reply {
             if r.status != Status::Accepted as u32 {
@@ -99,6 +111,93 @@ impl Episode {
     pub fn evaluate(&self) -> Evaluation {
         evaluate(&self.sim.scene, &self.trace)
     }
+
+    /// A new episode of the same scene, augmented by `seed`, started the way `r2g-control` and
+    /// `r2g-sim` start one on a reset request: the controller takes the reset, the simulator
+    /// restores the scene, and the controller holds the arm where the reset put it. The trace
+    /// starts again.
+    pub fn reset(&mut self, seed: u64) -> Result<(), String> {
+        let id = self.next_request;
+        self.next_request += 1;
+        let req = request(id, RequestKind::Reset, ControlType::Joint, &[], 0.0, 0);
+        let state = self.measure();
+        let (reply, fwd) = self.ctl.request(&req, &state);
+        let Forward::Reset { sim_reset_id } = fwd else {
+            return Err(reply.map_or_else(|| "the controller took no reset".into(), |r| r.reason_str().to_string()));
+        };
+        self.sim.seed = seed;
+        self.sim.reset();
+        self.seq += 1;
+        self.sim.reset_state_seq = self.seq;
+        self.reset_id = sim_reset_id;
+        self.trace = self.sim.new_trace();
+        self.sim.record(&mut self.trace);
+        let state = self.measure();
+        match self.ctl.complete_reset(&state) {
+            Some(r) if r.status == Status::Executed as u32 => Ok(()),
+            r => Err(r.map_or_else(|| "the reset did not complete".into(), |r| r.reason_str().to_string())),
+        }
+    }
+
+    /// One step of a fixed period, as a [`RequestKind::Step`] runs in `r2g-control`: `actions`
+    /// (none: only time passes) are taken as the step's chunk, then exactly `ticks` ticks run.
+    /// Returns every reply to the step's request in order, the last one `stepped`.
+    pub fn step(
+        &mut self,
+        control: ControlType,
+        actions: &[[f64; WAYPOINT_LEN]],
+        freq_hz: f64,
+        ticks: u32,
+    ) -> Vec<Reply> {
+        let id = self.next_request;
+        self.next_request += 1;
+        let req = request(id, RequestKind::Step, control, actions, freq_hz, ticks);
+        let state = self.measure();
+        let (reply, _) = self.ctl.request(&req, &state);
+        let mut replies: Vec<Reply> = [reply, self.ctl.take_accepted()].into_iter().flatten().collect();
+        let mut guard = ticks;
+        while self.ctl.advancing() && guard > 0 {
+            replies.extend(self.tick());
+            // The runtime reports the state after every tick; the TCP's axis-angle vector is kept
+            // continuous from one report to the next, so the reports must be the same here.
+            self.robot_state();
+            replies.extend(self.ctl.take_stepped());
+            guard -= 1;
+        }
+        replies.retain(|r| r.id == id);
+        replies
+    }
+
+    /// The agent-facing state of the present measurement, as the runtime publishes it.
+    pub fn robot_state(&mut self) -> RobotState {
+        let state = self.measure();
+        self.ctl.robot_state(&state, self.seq, Mode::Lockstep as u32)
+    }
+}
+
+/// A request of `kind` carrying `actions` (at most [`MAX_CHUNK`] are kept).
+fn request(
+    id: u64,
+    kind: RequestKind,
+    control: ControlType,
+    actions: &[[f64; WAYPOINT_LEN]],
+    freq_hz: f64,
+    step_ticks: u32,
+) -> Request {
+    let mut req = Request {
+        id,
+        client: 1,
+        kind: kind as u32,
+        control_type: control as u32,
+        len: actions.len().min(MAX_CHUNK) as u32,
+        step_ticks,
+        freq_hz,
+        actions: [[0.0; WAYPOINT_LEN]; MAX_CHUNK],
+    };
+    for (dst, src) in req.actions.iter_mut().zip(actions) {
+        *dst = *src;
+    }
+    req
 }
 
 /// How a replay went.

@@ -378,15 +378,31 @@ impl Client {
     /// Waits for the final reply to request `id` (an `accepted` one is noted on the way);
     /// watches the runtime's liveness meanwhile.
     fn wait_reply(&mut self, id: u64, timeout: Duration) -> Result<Reply, RoboError> {
+        let replies = self.replies_until(id, timeout, |r| r.status != Status::Accepted as u32)?;
+        let Some((last, accepted)) = replies.split_last() else { unreachable!("ends with the final reply") };
+        for r in accepted {
+            self.finish(*r);
+        }
+        Ok(*last)
+    }
+
+    /// Every reply to request `id` until one that `done` accepts (the last one returned);
+    /// watches the runtime's liveness meanwhile.
+    fn replies_until(
+        &mut self,
+        id: u64,
+        timeout: Duration,
+        done: impl Fn(&Reply) -> bool,
+    ) -> Result<Vec<Reply>, RoboError> {
         let t0 = Instant::now();
+        let mut replies = Vec::new();
         loop {
             while let Some(r) = self.reply_sub.receive().map_err(ipc("reply"))? {
                 if r.id == id && r.client == self.client_id {
-                    if r.status == Status::Accepted as u32 {
-                        self.finish(*r);
-                        continue;
+                    replies.push(*r);
+                    if done(&r) {
+                        return Ok(replies);
                     }
-                    return Ok(*r);
                 }
             }
             while let Some(s) = self.robot_sub.receive().map_err(ipc("robot state"))? {
@@ -484,6 +500,31 @@ impl Client {
             self.settle()?;
         }
         Ok(ok)
+    }
+
+    /// One step of a fixed period (a gymnasium environment's, see [`RequestKind::Step`]):
+    /// `actions` (none: time only passes) as the step's chunk, then `ticks` ticks. Blocks until
+    /// the period is over; returns every reply to the step in order, the last `stepped`.
+    pub fn step(
+        &mut self,
+        control: ControlType,
+        freq_hz: f64,
+        actions: &[[f64; WAYPOINT_LEN]],
+        ticks: u32,
+    ) -> Result<Vec<Reply>, RoboError> {
+        let id = self.send(|r| {
+            r.kind = RequestKind::Step as u32;
+            r.control_type = control as u32;
+            r.len = actions.len().min(MAX_CHUNK) as u32;
+            r.step_ticks = ticks;
+            r.freq_hz = freq_hz;
+            r.actions[..actions.len().min(MAX_CHUNK)].copy_from_slice(&actions[..actions.len().min(MAX_CHUNK)]);
+        })?;
+        let period_s = f64::from(ticks) * self.info.map_or(1e-3, |i| i.tick_period_ns as f64 * 1e-9);
+        let timeout = Duration::from_secs_f64(10.0 + 2.0 * period_s);
+        let replies = self.replies_until(id, timeout, |r| r.status == Status::Stepped as u32)?;
+        self.settle()?;
+        Ok(replies)
     }
 
     pub fn node_name(&self) -> String {

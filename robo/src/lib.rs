@@ -247,9 +247,18 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>, raw: boo
     let intr = PyDict::new(py);
     let extr = PyDict::new(py);
     let depths = PyDict::new(py);
+    // In lockstep simulated time stands still between requests: the frame of the settled state
+    // always comes, however loaded the machine is, so it is waited for (an older one would make
+    // the episode depend on the renderer's speed). In wall time a lagging renderer's newest
+    // frame is taken after 1.5 s.
+    let frame_wait = if state.mode == ipc_schema::Mode::Lockstep as u32 {
+        Duration::from_secs(20)
+    } else {
+        Duration::from_millis(1500)
+    };
     for (name, size) in wanted {
         let (frame, borrow) = with_client(|c| {
-            let f = c.frame(&name, Duration::from_millis(1500))?;
+            let f = c.frame(&name, frame_wait)?;
             let b = raw && c.may_borrow(&f);
             Ok((f, b))
         })

@@ -38,6 +38,8 @@ const REFLEX_GROWTH_N: f64 = 5.0;
 /// A chunk checked off the tick (see [`Controller::commit`]) is refused when the command has
 /// moved further than this from where its checks started, rad (any joint).
 pub const STALE_START_RAD: f64 = 0.05;
+/// The longest step a [`RequestKind::Step`] may ask for, ticks (10 s at 1 kHz).
+pub const MAX_STEP_TICKS: u32 = 10_000;
 
 #[derive(Debug, Clone, Copy)]
 enum Phase {
@@ -136,6 +138,12 @@ pub struct Controller {
     gripper_grasp: Option<u32>,
     /// A second reflex within this many seconds of the previous one needs an operator.
     reflex_window_s: f64,
+    /// The step in progress: request id, client, ticks left.
+    step: Option<(u64, u64, u32)>,
+    /// Its `stepped` reply once its period is over (see [`Self::take_stepped`]).
+    stepped: Option<Reply>,
+    /// The client that steps in this episode: in lockstep, time advances only inside steps.
+    paced: Option<u64>,
 }
 
 /// A request the controller wants passed to the simulator.
@@ -254,6 +262,9 @@ impl Controller {
             robot_reflexes: 0,
             last_reflex_s: None,
             reflex_window_s: 10.0,
+            step: None,
+            stepped: None,
+            paced: None,
         }
     }
 
@@ -504,9 +515,20 @@ impl Controller {
         self
     }
 
-    /// True while a chunk or reset is in progress (lockstep advances time only then).
+    /// True while a chunk, reset or step is in progress.
     pub fn busy(&self) -> bool {
-        self.active.is_some() || self.pending_reset.is_some() || self.halting
+        self.active.is_some() || self.pending_reset.is_some() || self.halting || self.step.is_some()
+    }
+
+    /// Whether lockstep advances simulated time now: inside a step, or (in an episode that no
+    /// client steps) while anything is in progress.
+    pub fn advancing(&self) -> bool {
+        self.step.is_some() || (self.paced.is_none() && self.busy())
+    }
+
+    /// The `stepped` reply of a step whose period just ended, once.
+    pub fn take_stepped(&mut self) -> Option<Reply> {
+        self.stepped.take()
     }
 
     pub fn locked(&self) -> Option<ControlType> {
@@ -556,12 +578,41 @@ impl Controller {
             let why = "clearing a fault is an operator request: it is taken only on the operator socket (`r2g clear`), never from the agent channel";
             return Admission::Answer(Some(Reply::new(req.id, req.client, Status::Rejected, why)), Forward::None);
         }
+        // A step's period starts now, whatever happens to its waypoints: time advances by it
+        // even when they are refused (and with none, the step only lets time pass).
+        let step = req.kind == RequestKind::Step as u32;
+        if step {
+            if self.step.is_some() {
+                let why = "a step is already running: wait for its `stepped` reply before the next one";
+                return Admission::Answer(Some(Reply::new(req.id, req.client, Status::Rejected, why)), Forward::None);
+            }
+            if !(1..=MAX_STEP_TICKS).contains(&req.step_ticks) {
+                let why = format_args!("a step lasts 1 to {MAX_STEP_TICKS} ticks, not {}: nothing ran", req.step_ticks);
+                let r = Reply::formatted(req.id, req.client, Status::Rejected, why);
+                return Admission::Answer(Some(r), Forward::None);
+            }
+            self.step = Some((req.id, req.client, req.step_ticks));
+            self.paced = Some(req.client);
+            if req.len == 0 {
+                return Admission::Answer(None, Forward::None);
+            }
+        }
         // A new chunk from the client whose chunk is running (or being checked) replaces it,
-        // blending from the current command; anything else waits for the running request.
-        let chunk = req.kind == RequestKind::Chunk as u32;
+        // blending from the current command; anything else waits for the running request, and
+        // nothing but the stepping client's own chunks runs during a step.
+        if req.kind == RequestKind::Reset as u32 && self.step.is_none() && self.paced == Some(req.client) {
+            // Between its steps time stands still, so what the stepping client left moving (or
+            // braking) would never end: its reset ends it, as a reset restores the arm anyway.
+            self.active = None;
+            self.halting = false;
+            self.stop_reply = None;
+        }
+        let chunk = req.kind == RequestKind::Chunk as u32 || step;
         let running = self.active.map(|a| a.client).or(in_flight);
         let preempts = chunk && running == Some(req.client);
-        let busy = (self.busy() || in_flight.is_some()) && !preempts;
+        let stepping = self.step.is_some_and(|(_, c, _)| !chunk || c != req.client);
+        let others = self.active.is_some() || self.pending_reset.is_some() || self.halting || stepping;
+        let busy = (others || in_flight.is_some()) && !preempts;
         if let Some(r) = self.refusal(req.id, req.client, chunk, busy) {
             return Admission::Answer(Some(r), Forward::None);
         }
@@ -585,7 +636,7 @@ impl Controller {
                 self.pending_reset = Some((req.id, req.client, sim_id));
                 Admission::Answer(None, Forward::Reset { sim_reset_id: sim_id })
             }
-            k if k == RequestKind::Chunk as u32 => {
+            k if k == RequestKind::Chunk as u32 || k == RequestKind::Step as u32 => {
                 let Some(ct) = ControlType::from_u32(req.control_type) else {
                     return self.reject(req, Rejection::UnknownControlType(req.control_type));
                 };
@@ -777,6 +828,7 @@ impl Controller {
         self.tracker = None;
         self.locked = None;
         self.pending_reset = None;
+        self.paced = None;
         self.finger_prev = state.finger_m;
         self.finger_still_ticks = 0;
         // Every episode reports its start pose the same way, whatever the last one did.
@@ -994,6 +1046,13 @@ impl Controller {
         if let (Some(r), Some(a)) = (reply.as_mut(), timing) {
             if r.id == a.id && r.client == a.client {
                 *r = a.stamp(*r);
+            }
+        }
+        if let Some((id, client, left)) = self.step.as_mut() {
+            *left -= 1;
+            if *left == 0 {
+                self.stepped = Some(Reply::new(*id, *client, Status::Stepped, "stepped: the period is over"));
+                self.step = None;
             }
         }
         self.cmd_seq += 1;

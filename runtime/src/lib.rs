@@ -350,6 +350,7 @@ impl Ports {
             self.reply_pub.update_connections(),
             self.robot_pub.update_connections(),
             self.agent_wake.update_connections(),
+            self.info_pub.update_connections(),
         ];
         let robot = [
             self.state_sub.update_connections(),
@@ -645,8 +646,12 @@ fn wall_loop(
         let rejected = ports.serve_requests(ctl, planner.as_deref_mut(), &latest, &mut stats)?;
         // The state first: an agent woken by the reply must already see where the arm is.
         robot_seq += 1;
-        let wake_agents = rejected || reply.is_some();
+        let stepped = ctl.take_stepped();
+        let wake_agents = rejected || reply.is_some() || stepped.is_some();
         ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Wall as u32), reply, &mut stats);
+        if let Some(r) = stepped {
+            ports.reply(r, &mut stats);
+        }
         if robot_seq.is_multiple_of(200) {
             // Late subscribers get the limits from history; resend so they never wait long.
             let _ = ports.info_pub.send_copy(info);
@@ -722,6 +727,7 @@ fn lockstep_loop(
     let mut robot_seq = 0u64;
     let start = std::time::Instant::now();
     let mut last_beat = std::time::Instant::now();
+    let host_baseline = process::host_baseline();
     loop {
         health.cycles.fetch_add(1, Relaxed);
         health.ticks.store(stats.ticks, Relaxed);
@@ -753,7 +759,7 @@ fn lockstep_loop(
             robot_seq += 1;
             ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), reply, &mut stats);
             ports.wake_agents(&mut stats);
-        } else if ctl.busy() {
+        } else if ctl.advancing() {
             // Tick k consumes state k and produces command k; the sim answers with state k+1.
             let t = rt::now_ns();
             let (cmd, reply) = ctl.tick(&latest);
@@ -763,8 +769,13 @@ fn lockstep_loop(
             ports.sim_wake.notify()?;
             wait_for_state(ports, sim, &mut latest, |s| s.command_seq >= cmd.seq)?;
             robot_seq += 1;
-            let wake = reply.is_some();
+            let stepped = ctl.take_stepped();
+            let wake = reply.is_some() || stepped.is_some();
             ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), reply, &mut stats);
+            if let Some(r) = stepped {
+                // After the state it ends on, so the stepping client reads that state.
+                ports.reply(r, &mut stats);
+            }
             if wake {
                 ports.wake_agents(&mut stats);
             }
@@ -776,6 +787,10 @@ fn lockstep_loop(
                 ports.to_agents(ctl.robot_state(&latest, robot_seq, Mode::Lockstep as u32), None, &mut stats);
                 if robot_seq.is_multiple_of(10) {
                     let _ = ports.info_pub.send_copy(info);
+                } else if !host_baseline {
+                    // A new agent gets the limits from history as soon as they are noted.
+                    use iceoryx2::port::update_connections::UpdateConnections;
+                    let _ = ports.info_pub.update_connections();
                 }
                 last_beat = std::time::Instant::now();
             }

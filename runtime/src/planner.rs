@@ -275,7 +275,7 @@ mod tests {
             kind: RequestKind::Chunk as u32,
             control_type: ControlType::Joint as u32,
             len: 1,
-            _pad: 0,
+            step_ticks: 0,
             freq_hz: 0.0,
             actions: [[0.0; WAYPOINT_LEN]; MAX_CHUNK],
         });

@@ -17,7 +17,7 @@ fn request(id: u64, ct: ControlType, actions: &[[f64; 8]]) -> Box<Request> {
         kind: RequestKind::Chunk as u32,
         control_type: ct as u32,
         len: actions.len() as u32,
-        _pad: 0,
+        step_ticks: 0,
         freq_hz: 0.0,
         actions: [[0.0; WAYPOINT_LEN]; MAX_CHUNK],
     });
@@ -552,4 +552,61 @@ fn a_gripper_fault_stops_the_chunk_holds_the_arm_and_refuses_chunks_until_clear(
         let (r, _) = run(&mut ctl, &mut state, &request(4, ControlType::Joint, &[joint_wp(target, -1.0)]));
         assert_eq!(r.status, Status::Executed as u32, "{}", r.reason_str());
     }
+}
+
+#[test]
+fn a_step_lasts_exactly_its_ticks_and_paces_time_until_the_next_reset() {
+    let (robot, safety) = runtime::scene_robot(&scene()).expect("scene");
+    let mut ctl = Controller::new(robot, LimiterConfig::default(), 0.001).with_safety(safety);
+    let mut state = SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, ..SimState::default() };
+    // A far target: its segment is stretched past the step's 50 ticks by the velocity limits.
+    let mut far = request(1, ControlType::Joint, &ramp(HOME, 0, 0.8, 1));
+    far.kind = RequestKind::Step as u32;
+    far.step_ticks = 50;
+    let (r, _) = ctl.request(&far, &state);
+    assert!(r.is_none(), "accepted: {:?}", r.map(|r| r.reason_str().to_string()));
+    assert_eq!(ctl.take_accepted().map(|r| r.status), Some(Status::Accepted as u32));
+    let mut ticks = 0;
+    let stepped = loop {
+        assert!(ctl.advancing());
+        let (cmd, reply) = ctl.tick(&state);
+        ticks += 1;
+        state.seq += 1;
+        state.q_rad = cmd.q_rad;
+        assert!(reply.is_none(), "the far chunk cannot finish within the step");
+        if let Some(s) = ctl.take_stepped() {
+            break s;
+        }
+    };
+    assert_eq!((ticks, stepped.id, stepped.status), (50, 1, Status::Stepped as u32));
+    // The chunk still moves, but time stands still until the next step.
+    assert!(ctl.busy() && !ctl.advancing());
+    // A second step while one runs is refused; a step of 0 ticks too; and a reset during one.
+    let mut hold = request(2, ControlType::Joint, &[]);
+    hold.kind = RequestKind::Step as u32;
+    hold.step_ticks = 0;
+    let (r, _) = ctl.request(&hold, &state);
+    assert!(r.is_some_and(|r| r.status == Status::Rejected as u32 && r.reason_str().contains("1 to")));
+    hold.step_ticks = 5;
+    assert!(ctl.request(&hold, &state).0.is_none(), "a step without waypoints only lets time pass");
+    let mut again = hold.clone();
+    again.id = 3;
+    let (r, _) = ctl.request(&again, &state);
+    assert!(r.is_some_and(|r| r.reason_str().contains("already running")));
+    let mut reset = request(4, ControlType::Joint, &[]);
+    reset.kind = RequestKind::Reset as u32;
+    assert!(ctl.request(&reset, &state).0.is_some_and(|r| r.status == Status::Rejected as u32));
+    for _ in 0..5 {
+        let (cmd, _) = ctl.tick(&state);
+        state.q_rad = cmd.q_rad;
+    }
+    assert_eq!(ctl.take_stepped().map(|r| r.id), Some(2));
+    // A reset ends the pacing: a plain chunk advances time again.
+    let (_, fwd) = ctl.request(&reset, &state);
+    let runtime::controller::Forward::Reset { sim_reset_id } = fwd else { panic!("a reset goes to the simulator") };
+    state.reset_id = sim_reset_id;
+    state.q_rad = HOME;
+    assert!(ctl.complete_reset(&state).is_some());
+    let (_, _) = ctl.request(&request(5, ControlType::Joint, &ramp(HOME, 0, 0.05, 1)), &state);
+    assert!(ctl.advancing());
 }

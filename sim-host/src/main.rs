@@ -55,6 +55,10 @@ struct Args {
     /// to 5 cm in x and y, 30 degrees of yaw), drawn from --seed, clear of everything else.
     #[arg(long, value_name = "SPEC", requires = "seed")]
     perturb: Option<sim_host::placement::Perturbation>,
+    /// Serve gymnasium environments: the evaluator's verdict on the episode so far and the seed
+    /// of the next episode, on the instance's `env/` services (never opened by `robo`).
+    #[arg(long)]
+    env: bool,
 }
 
 /// Writes an episode's trace and its evaluation; a failure to write is reported, not fatal.
@@ -169,7 +173,8 @@ fn run() -> anyhow::Result<()> {
         None
     };
 
-    let mut trace = args.trace_dir.as_ref().map(|_| sim.new_trace());
+    let env = if args.env { Some(sim_host::env_service::EnvService::open(&node, &services)?) } else { None };
+    let mut trace = (args.trace_dir.is_some() || env.is_some()).then(|| sim.new_trace());
     let mut episode = 1u64;
     if let Some(t) = trace.as_mut() {
         sim.record(t);
@@ -181,6 +186,7 @@ fn run() -> anyhow::Result<()> {
     let mut snapshot_dirty = true;
     let mut last_publish = std::time::Instant::now();
     let mut last_info = std::time::Instant::now();
+    let host_baseline = process::host_baseline();
     // This run's session: commands computed from another run's state are ignored.
     let session = ((u64::from(std::process::id()) << 32) ^ ipc_schema::monotonic_ns()) | 1;
     let publish = |sim: &Sim, seq: u64, cmd: u64, reset_id: u64| -> anyhow::Result<()> {
@@ -208,13 +214,14 @@ fn run() -> anyhow::Result<()> {
         let _ = wake.timed_wait(|_| {}, Duration::from_millis(20));
         let mut stepped = false;
         while let Some(r) = reset_sub.receive()? {
-            if let (Some(dir), Some(t)) = (&args.trace_dir, trace.as_mut()) {
+            if let (Some(dir), Some(t)) = (&args.trace_dir, trace.as_ref()) {
                 finish_episode(&sim, dir, episode, t);
                 episode += 1;
-                *t = sim.new_trace();
             }
             sim.reset();
             if let Some(t) = trace.as_mut() {
+                // Made after the reset, so it carries this episode's seed.
+                *t = sim.new_trace();
                 sim.record(t);
             }
             reset_id = r.id;
@@ -237,6 +244,10 @@ fn run() -> anyhow::Result<()> {
             publish(&sim, seq, cmd.seq, reset_id)?;
             stepped = true;
         }
+        if let (Some(e), Some(t)) = (&env, trace.as_ref()) {
+            // After the steps: a verdict judges the trace up to the newest state.
+            e.serve(&mut sim, t, reset_id)?;
+        }
         snapshot_dirty |= stepped;
         if !stepped && last_publish.elapsed() > Duration::from_millis(20) {
             // Idle (lockstep between requests, or before the runtime starts): repeat the state
@@ -244,9 +255,14 @@ fn run() -> anyhow::Result<()> {
             publish(&sim, seq, last_cmd_seq, reset_id)?;
         }
         if last_info.elapsed() > Duration::from_millis(200) {
-            // History reaches late subscribers only with a new send.
+            // History reaches late subscribers with a new send...
             info_pub.send_copy(info)?;
             last_info = std::time::Instant::now();
+        } else if !stepped && !host_baseline {
+            // ... or when the publisher takes note of them: an agent connecting to an idle
+            // instance has the camera list within one idle round, not up to 200 ms later.
+            use iceoryx2::port::update_connections::UpdateConnections;
+            let _ = info_pub.update_connections();
         }
         if stepped || last_publish.elapsed() > Duration::from_millis(20) {
             last_publish = std::time::Instant::now();

@@ -50,20 +50,21 @@ impl FromStr for Perturbation {
 
     fn from_str(text: &str) -> Result<Self, Self::Err> {
         let bad = |why: String| PerturbationError::Syntax { text: text.to_string(), why };
-        let mut p = Perturbation { xy_m: f64::NAN, yaw_deg: f64::NAN, objects: Vec::new() };
+        let (mut xy, mut yaw, mut objects) = (None, None, Vec::new());
         for item in text.split(',').map(str::trim).filter(|s| !s.is_empty()) {
             let (k, v) = item.split_once('=').ok_or_else(|| bad(format!("'{item}' is not key=value")))?;
             let num = || v.trim().parse::<f64>().map_err(|_| bad(format!("{k}: '{v}' is not a number")));
             match k.trim() {
-                "xy" => p.xy_m = num()?,
-                "yaw" => p.yaw_deg = num()?,
-                "objects" => p.objects = v.split('+').map(|s| s.trim().to_string()).filter(|s| !s.is_empty()).collect(),
+                "xy" => xy = Some(num()?),
+                "yaw" => yaw = Some(num()?),
+                "objects" => objects = v.split('+').map(|s| s.trim().to_string()).filter(|s| !s.is_empty()).collect(),
                 other => return Err(bad(format!("unknown key '{other}'"))),
             }
         }
-        if p.xy_m.is_nan() || p.yaw_deg.is_nan() {
+        let (Some(xy_m), Some(yaw_deg)) = (xy, yaw) else {
             return Err(bad("both xy and yaw are needed".into()));
-        }
+        };
+        let p = Perturbation { xy_m, yaw_deg, objects };
         p.check_ranges().map_err(bad)?;
         Ok(p)
     }

@@ -131,6 +131,8 @@ pub fn run(
     let mut cams = Cameras::new(model, w, h, any_depth)?;
     let period = Duration::from_secs_f64(1.0 / cfg.rate_hz.max(0.1));
     let mut last_seq = u64::MAX;
+    let mut last_reset = u64::MAX;
+    let first_frame_at_once = !ipc_schema::process::host_baseline();
     let mut next = Instant::now();
     let mut frame_seq = 0u64;
     let mut idle = 0u64;
@@ -158,11 +160,14 @@ pub fn run(
             continue;
         };
         let now = Instant::now();
-        if now < next {
+        // A new episode's first frame is drawn at once: whoever reset waits for it (an agent's
+        // first observation), and its scene differs from the last frame's.
+        if now < next && (snap.reset_id == last_reset || !first_frame_at_once) {
             std::thread::sleep(next - now);
         }
         next = Instant::now() + period;
         last_seq = snap.state_seq;
+        last_reset = snap.reset_id;
         cams.set_state(&snap.qpos, snap.sim_time_s);
         let world_from_base = cams.body_pose(cfg.base_body);
         for ((spec, cam_id), publisher) in cfg.cameras.iter().zip(&publishers) {

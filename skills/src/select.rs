@@ -1,0 +1,281 @@
+//! Selection: which skills an episode's prompt gets. Deterministic and offline:
+//! 1. filter — status (validated; candidates only when asked), the same fingerprint (kinematics,
+//!    gripper, profile) and backend, and every object class the skill needs among those
+//!    perception finds in the episode's first observation;
+//! 2. rank — BM25 relevance of the instruction to the skill's name, summary, keywords, task kind
+//!    and stage names, times a conservative success estimate (the Wilson lower bound of its
+//!    natively judged runs); ties by id;
+//! 3. take the best few whose rendered text fits a token budget.
+//! The choice, with every score and every reason for leaving one out, is logged in the episode
+//! record (skills.json, shown by the viewer) and in the library's events.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use agent_host::episode::{ChosenSkills, SkillSource};
+use serde::Serialize;
+use serde_json::{json, Value};
+
+use crate::format::{wilson_lower, Backend, Fingerprint, Skill, Status, Step};
+use crate::library::Library;
+
+#[derive(Debug, Clone)]
+pub struct SelectOpts {
+    pub max_skills: usize,
+    /// Estimated tokens (4 characters each) the skills section may take.
+    pub token_budget: usize,
+    pub include_candidates: bool,
+}
+
+impl Default for SelectOpts {
+    fn default() -> Self {
+        Self { max_skills: 3, token_budget: 2000, include_candidates: false }
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Scored {
+    pub id: String,
+    pub version: u32,
+    pub relevance: f64,
+    pub success_lower_bound: f64,
+    pub score: f64,
+    pub tokens: usize,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Selection {
+    pub instruction: String,
+    pub perceived_classes: Vec<String>,
+    pub chosen: Vec<String>,
+    pub ranked: Vec<Scored>,
+    /// (skill id, why it was left out).
+    pub excluded: Vec<(String, String)>,
+    #[serde(skip)]
+    pub prompt: String,
+}
+
+fn tokens(text: &str) -> Vec<String> {
+    text.split(|c: char| !c.is_alphanumeric()).filter(|w| w.len() > 1).map(str::to_lowercase).collect()
+}
+
+fn document(s: &Skill) -> Vec<String> {
+    let mut d = tokens(&s.name);
+    d.extend(tokens(&s.summary));
+    d.extend(s.applicability.keywords.iter().flat_map(|k| tokens(k)));
+    d.extend(tokens(&s.applicability.task_kind.replace('_', " ")));
+    d.extend(s.procedure.iter().flat_map(|st| tokens(&st.name.replace('_', " "))));
+    d.extend(s.objects.values().flat_map(|o| tokens(&o.prompt)));
+    d
+}
+
+/// BM25 (k1 = 1.2, b = 0.75) of `query` against each document.
+fn bm25(query: &[String], docs: &[Vec<String>]) -> Vec<f64> {
+    let n = docs.len() as f64;
+    let avg = docs.iter().map(Vec::len).sum::<usize>() as f64 / n.max(1.0);
+    let mut q: Vec<&String> = query.iter().collect();
+    q.sort();
+    q.dedup();
+    docs.iter()
+        .map(|d| {
+            q.iter()
+                .map(|t| {
+                    let df = docs.iter().filter(|x| x.contains(t)).count() as f64;
+                    let tf = d.iter().filter(|x| x == t).count() as f64;
+                    if tf == 0.0 {
+                        return 0.0;
+                    }
+                    let idf = ((n - df + 0.5) / (df + 0.5) + 1.0).ln();
+                    idf * tf * 2.2 / (tf + 1.2 * (0.25 + 0.75 * d.len() as f64 / avg.max(1.0)))
+                })
+                .sum()
+        })
+        .collect()
+}
+
+/// The skills section text for one skill.
+pub fn render(s: &Skill) -> String {
+    let (k, n) = s.record();
+    let mut t = format!(
+        "### skill {} v{} ({:?}; {k} of {n} natively judged runs succeeded)\n{}\nFile: skills/{}.json (in your scratch folder)\nObjects: {}\nProcedure:\n",
+        s.id,
+        s.version,
+        s.status,
+        s.summary,
+        s.id,
+        s.objects.iter().map(|(r, o)| format!("{r} = \"{}\" ({})", o.prompt, o.class)).collect::<Vec<_>>().join(", ")
+    );
+    let rules: BTreeMap<&str, _> = s.rules.iter().map(|r| (r.id.as_str(), r)).collect();
+    for (i, st) in s.procedure.iter().enumerate() {
+        let steps: Vec<String> = st
+            .steps
+            .iter()
+            .map(|step| match step {
+                Step::Move { rule } => match rules.get(rule.as_str()) {
+                    Some(r) => format!(
+                        "move {rule} ({:?} to offset [{:.3}, {:.3}, {:.3}] m from the {:?} of {}, yaw {:.2} rad, gripper {:+.1})",
+                        r.actor, r.offset_m[0], r.offset_m[1], r.offset_m[2], r.anchor.feature, r.anchor.object, r.yaw_rad, r.gripper
+                    ),
+                    None => format!("move {rule}"),
+                },
+                Step::Gripper { gripper, settle_s } => format!("gripper {gripper:?} ({settle_s} s)"),
+                Step::Hold { hold_s } => format!("hold {hold_s} s"),
+            })
+            .collect();
+        let checks: Vec<String> = st
+            .checks
+            .iter()
+            .map(|c| {
+                format!("{:?}", c.kind).to_lowercase() + &c.object.as_ref().map(|o| format!(" {o}")).unwrap_or_default()
+            })
+            .collect();
+        t.push_str(&format!(
+            "{}. {}: {}{}\n",
+            i + 1,
+            st.name,
+            steps.join("; "),
+            if checks.is_empty() { String::new() } else { format!(" — then check: {}", checks.join(", ")) }
+        ));
+    }
+    for r in &s.recovery {
+        t.push_str(&format!("Recovery: when {}, {}\n", r.when, r.action));
+    }
+    t
+}
+
+pub const HOW_TO_USE: &str = "These skills were learned in earlier episodes. Their motions are relative to objects \
+(robot-skill/skills/README.md): bind them to what you see now, never copy numbers as positions. Run a whole skill: \
+`import json, robo_skills; robo_skills.run_skill(json.load(open(\"skills/<id>.json\")))` (one JSON line per event, \
+then `SKILL RESULT {...}`); or one rule: `r = robo_skills.SkillRunner(skill); scene, state = r.observe(); \
+pose = r.target(\"<rule id>\", scene, state)`. Verify effects yourself as always.";
+
+/// Steps 1-3.
+pub fn select(
+    lib: &Library,
+    instruction: &str,
+    classes: &[String],
+    fp: &Fingerprint,
+    backend: Backend,
+    o: &SelectOpts,
+) -> Selection {
+    let mut excluded = Vec::new();
+    let mut pool: Vec<&Skill> = Vec::new();
+    for s in lib.latest() {
+        let why = if s.status == Status::Retired {
+            Some("retired".to_string())
+        } else if s.status == Status::Candidate && !o.include_candidates {
+            Some("a candidate (not validated)".to_string())
+        } else if &s.applicability.fingerprint != fp {
+            Some("learned with another arm, gripper or profile (fingerprint differs)".to_string())
+        } else if s.applicability.backend != backend {
+            Some(format!("learned on {:?}", s.applicability.backend))
+        } else if let Some(missing) = s.applicability.object_classes.iter().find(|c| !classes.contains(c)) {
+            Some(format!("needs a {missing}, which perception does not see"))
+        } else {
+            None
+        };
+        match why {
+            Some(w) => excluded.push((s.id.clone(), w)),
+            None => pool.push(s),
+        }
+    }
+    let query = tokens(instruction);
+    let docs: Vec<Vec<String>> = pool.iter().map(|s| document(s)).collect();
+    let rel = bm25(&query, &docs);
+    let mut ranked: Vec<(Scored, &Skill)> = pool
+        .iter()
+        .zip(rel)
+        .map(|(s, r)| {
+            let (k, n) = s.record();
+            // A candidate (no judged run yet) counts as a small success estimate when allowed.
+            let lb = if n == 0 {
+                if o.include_candidates {
+                    0.05
+                } else {
+                    0.0
+                }
+            } else {
+                wilson_lower(k, n).max(0.01)
+            };
+            let text = render(s);
+            (
+                Scored {
+                    id: s.id.clone(),
+                    version: s.version,
+                    relevance: r,
+                    success_lower_bound: lb,
+                    score: r * lb,
+                    tokens: text.len() / 4,
+                },
+                *s,
+            )
+        })
+        .collect();
+    ranked.sort_by(|a, b| b.0.score.total_cmp(&a.0.score).then(a.0.id.cmp(&b.0.id)));
+    let mut chosen = Vec::new();
+    let mut prompt = String::new();
+    let mut used = HOW_TO_USE.len() / 4;
+    for (sc, s) in &ranked {
+        if chosen.len() >= o.max_skills {
+            break;
+        }
+        if sc.score <= 0.0 {
+            excluded.push((sc.id.clone(), "not relevant to the instruction".into()));
+            continue;
+        }
+        if used + sc.tokens > o.token_budget {
+            excluded.push((sc.id.clone(), format!("over the token budget of {}", o.token_budget)));
+            continue;
+        }
+        used += sc.tokens;
+        chosen.push(sc.id.clone());
+        prompt.push_str(&render(s));
+        prompt.push('\n');
+    }
+    if !chosen.is_empty() {
+        prompt = format!("{HOW_TO_USE}\n\n{prompt}");
+    }
+    Selection {
+        instruction: instruction.to_string(),
+        perceived_classes: classes.to_vec(),
+        chosen,
+        ranked: ranked.into_iter().map(|(s, _)| s).collect(),
+        excluded,
+        prompt,
+    }
+}
+
+/// A library offered to episodes ([`SkillSource`]): reads the library when an episode starts,
+/// perceives its first observation, selects, and logs the choice.
+pub struct LibrarySource {
+    pub root: PathBuf,
+    pub dir: PathBuf,
+    pub fingerprint: Fingerprint,
+    pub opts: SelectOpts,
+}
+
+impl SkillSource for LibrarySource {
+    fn choose(&self, task: &str, first_obs: &Path, state: &Value) -> anyhow::Result<ChosenSkills> {
+        let lib = Library::open(&self.dir)?;
+        let seen = crate::tools::call(&self.root, "perceive", &json!({"obs": first_obs}))?;
+        let mut classes: Vec<String> = seen["objects"]
+            .as_array()
+            .map(Vec::as_slice)
+            .unwrap_or_default()
+            .iter()
+            .filter_map(|o| o["shape"].as_str().map(str::to_string))
+            .collect();
+        classes.sort();
+        classes.dedup();
+        let backend = if state["backend"] == "simulation" { Backend::Sim } else { Backend::Real };
+        let sel = select(&lib, task, &classes, &self.fingerprint, backend, &self.opts);
+        lib.log("selected", json!({"instruction": task, "chosen": sel.chosen, "ranked": sel.ranked}))?;
+        let files = sel
+            .chosen
+            .iter()
+            .filter_map(|id| lib.get(id))
+            .map(|s| Ok((format!("skills/{}.json", s.id), serde_json::to_vec_pretty(s)?)))
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        Ok(ChosenSkills { prompt: sel.prompt.clone(), log: serde_json::to_value(&sel)?, files })
+    }
+}

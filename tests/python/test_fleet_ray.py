@@ -1,0 +1,147 @@
+"""`r2g batch --ray` on a real local Ray head this test starts and stops itself (by the process
+group it created, never `ray stop`): eight scripted episodes (recorded conversations, so
+synthetic model answers), one Ray worker SIGKILLed mid-episode, the episode retried, and
+nothing of the killed job left (processes, /dev/shm files) within 15 s."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import R2G, ROOT
+
+RAY = ROOT / ".venv" / "bin" / "ray"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _ppid(pid: int) -> int:
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    return int(stat.rsplit(")", 1)[1].split()[1])
+
+
+def _descends_from(pid: int, ancestor: int) -> bool:
+    while pid > 1:
+        if pid == ancestor:
+            return True
+        try:
+            pid = _ppid(pid)
+        except (OSError, ValueError, IndexError):
+            return False
+    return False
+
+
+def _group(pgid: int) -> list[str]:
+    out = subprocess.run(["ps", "-o", "pid,pgid,args", "-g", str(pgid)], capture_output=True, text=True).stdout
+    return [line for line in out.splitlines()[1:] if line.strip()]
+
+
+def _session(sid: int) -> list[int]:
+    out = subprocess.run(["ps", "-o", "pid=", "-s", str(sid)], capture_output=True, text=True).stdout
+    return [int(p) for p in out.split() if int(p) != sid]
+
+
+def _shm(prefix: str) -> list[str]:
+    return sorted(p.name for p in Path("/dev/shm").glob(f"{prefix}*"))
+
+
+@pytest.fixture
+def ray_head(tmp_path: Path):
+    if not RAY.is_file():
+        pytest.fail(f"{RAY} missing: make venv installs requirements-ray.txt")
+    port = _free_port()
+    jobs = tmp_path / "jobs"
+    env = dict(os.environ, R2G_FLEET_DIR=str(jobs), RAY_USAGE_STATS_ENABLED="0")
+    head = subprocess.Popen(
+        [str(RAY), "start", "--head", f"--port={port}", "--num-cpus=2",
+         '--resources={"r2g_gym": 2}', "--include-dashboard=false", "--block"],
+        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            assert head.poll() is None, "ray start exited"
+            time.sleep(0.5)
+        yield head, f"127.0.0.1:{port}", jobs
+    finally:
+        # The group this test created: `ray start --block` and what it started.
+        for sig, wait_s in ((signal.SIGTERM, 20), (signal.SIGKILL, 10)):
+            try:
+                os.killpg(head.pid, sig)
+            except ProcessLookupError:
+                break
+            deadline = time.monotonic() + wait_s
+            while time.monotonic() < deadline and _group(head.pid):
+                time.sleep(0.5)
+        # Ray's workers run in process groups of their own, in the session this test created.
+        for pid in _session(head.pid):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        head.wait(timeout=10)
+
+
+def test_a_ray_batch_survives_a_killed_worker_and_leaves_nothing_behind(ray_head, tmp_path: Path) -> None:
+    head, address, jobs = ray_head
+    out = tmp_path / "batch"
+    batch = subprocess.Popen(
+        [str(R2G), "batch", "pick_block_plate", "--episodes", "8", "--max-decisions", "3", "--ray", address,
+         "--out", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    # A job that has started its episode: its folder names the worker, the group and the prefix.
+    victim = None
+    deadline = time.monotonic() + 180
+    while victim is None and time.monotonic() < deadline and batch.poll() is None:
+        for f in jobs.glob("*/job.json") if jobs.is_dir() else []:
+            try:
+                facts = json.loads(f.read_text())
+            except ValueError:
+                continue
+            if facts.get("pgid") and _shm(facts["prefix"]) and len(_group(facts["pgid"])) >= 3:
+                victim = facts
+                break
+        time.sleep(0.2)
+    if victim is None:
+        batch.kill()
+        pytest.fail(f"no episode was seen running: {batch.communicate()[1][-3000:]}")
+    worker, pgid, prefix = int(victim["worker"]), int(victim["pgid"]), victim["prefix"]
+    assert _descends_from(worker, head.pid), "the worker must be a process of the Ray head this test started"
+    before = {"processes": _group(pgid), "shm": _shm(prefix)}
+    print("before SIGKILL:", json.dumps(before, indent=1))
+    os.kill(worker, signal.SIGKILL)
+    killed_at = time.monotonic()
+    left = before
+    while time.monotonic() - killed_at < 15:
+        left = {"processes": _group(pgid), "shm": _shm(prefix)}
+        if not left["processes"] and not left["shm"]:
+            break
+        time.sleep(0.25)
+    print(f"after SIGKILL ({time.monotonic() - killed_at:.1f} s):", json.dumps(left, indent=1))
+    assert not left["processes"] and not left["shm"], left
+    stdout, stderr = batch.communicate(timeout=600)
+    assert batch.returncode == 0, stderr[-3000:]
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    assert summary["episodes"] == 8 and summary["errors"] == 0, summary
+    # The killed episode ran again: every episode folder has its result.
+    assert all((out / f"episode-{i:03}" / "result.json").is_file() for i in range(8))
+    assert json.loads((out / "batch.json").read_text())["episodes"] == 8
+    # Every job is gone: no folder, no shared memory of any job prefix.
+    assert not list(jobs.glob("*/job.json")), list(jobs.iterdir())
+    assert not list(Path("/dev/shm").glob("r2gj*")) or all(
+        not p.name.startswith(prefix) for p in Path("/dev/shm").glob("r2gj*")
+    )

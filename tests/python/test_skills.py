@@ -1,0 +1,250 @@
+"""Skills (issue 19): binding object-relative rules, the base-frame lint, and the whole loop on
+real processes — a scripted episode (SYNTHETIC: a recorded conversation written by us), skill
+extraction with recorded extraction answers (SYNTHETIC as well), admission by model-free runs
+on held-out perturbed seeds, `r2g skills run`, selection into a later episode, and the
+`--skills-protocol learn` batch. Figures from these runs are mechanics only: no model took part."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import R2G, ROOT
+from test_agent_episode import chromium_dom
+
+sys.path.insert(0, str(ROOT / "agent-host" / "py" / "lib"))
+
+import robo_skills as rs  # noqa: E402
+from robo_perception.transforms import axis_angle_to_matrix, pose_to_matrix  # noqa: E402
+
+LIB = ROOT / "agent-host" / "py" / "lib"
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def random_anchor(rng: np.random.Generator, symmetry: str) -> rs.Anchor:
+    axes = axis_angle_to_matrix([0.0, 0.0, rng.uniform(-math.pi, math.pi)])
+    side = rng.uniform(0.03, 0.12)
+    ext = np.array([side, side * (1.0 if symmetry != "box" else rng.uniform(0.3, 0.8)), rng.uniform(0.01, 0.1)])
+    return rs.Anchor(np.array([rng.uniform(0.3, 0.7), rng.uniform(-0.3, 0.3), ext[2] / 2]), axes, ext,
+                     np.array([0.0, 0.0, 1.0]), symmetry)
+
+
+def test_bound_targets_move_with_the_anchors_under_rigid_transforms() -> None:
+    """Property: for random rules, objects (box, square, round), reference TCPs and random rigid
+    transforms T of the whole scene, bind(rule, T·object, T·reference) = T·bind(rule, object,
+    reference) to 1e-9."""
+    rng = np.random.default_rng(19)
+    worst = 0.0
+    for trial in range(600):
+        sym = ("box", "square", "round")[trial % 3]
+        a = random_anchor(rng, sym)
+        ref = pose_to_matrix([rng.uniform(0.2, 0.6), rng.uniform(-0.3, 0.3), rng.uniform(0.1, 0.5), math.pi, 0.0,
+                              rng.uniform(-1.0, 1.0)])
+        rule = {"actor": ("tcp", "fingertips")[trial % 2], "anchor": {"object": "o", "feature": rs.FEATURES[trial % 4]},
+                "offset_m": list(rng.uniform(-0.1, 0.1, 3)), "yaw_rad": rng.uniform(-math.pi, math.pi),
+                "tilt_rad": [math.pi + rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), 0.0]}
+        T = np.eye(4)
+        T[:3, :3] = random_rotation(rng)
+        T[:3, 3] = rng.normal(size=3)
+        moved = rs.bind(rule, a.transformed(T), T @ ref)
+        worst = max(worst, float(np.abs(moved - T @ rs.bind(rule, a, ref)).max()))
+    assert worst < 1e-9, worst
+
+
+def test_relate_then_bind_gives_the_target_back() -> None:
+    rng = np.random.default_rng(7)
+    worst = 0.0
+    for trial in range(300):
+        a = random_anchor(rng, ("box", "square", "round")[trial % 3])
+        ref = pose_to_matrix([rng.uniform(0.2, 0.6), rng.uniform(-0.3, 0.3), rng.uniform(0.1, 0.5), math.pi, 0.0, 0.3])
+        target = pose_to_matrix([a.center[0] + rng.uniform(-0.05, 0.05), a.center[1] + rng.uniform(-0.05, 0.05),
+                                 rng.uniform(0.02, 0.2), math.pi, 0.0, rng.uniform(-1.0, 1.0)])
+        for feature in rs.FEATURES:
+            rule = rs.relate(target, a, feature, ref, actor=("tcp", "fingertips")[trial % 2])
+            dp, dr = rs.same_grasp(rs.bind(rule, a, ref), target)
+            worst = max(worst, dp + dr)
+    assert worst < 1e-5, worst
+
+
+@pytest.mark.parametrize("code", [
+    "goal = [0.5, -0.12, 0.1]\n",
+    "post_actions({'actions': [[0.5, 0.1, 0.2, 3.14, 0, 0, 1]], 'type': 'ee_pose', 'freq': ''})\n",
+    "g = list(here)\ng[2] = 0.3\n",
+    "t = np.array([0.45, 0.1, 0.2])\n",
+    "t = (0.45, -0.1, 0.2, 3.1, 0.0, 0.0)\n",
+])
+def test_the_lint_refuses_base_frame_numbers_on_the_parsed_code(code: str) -> None:
+    with pytest.raises(rs.LintError, match="line"):
+        rs.check_code(code)
+
+
+@pytest.mark.parametrize("code", [
+    "here = state['ee_pose']\ngoal = list(here)\ngoal[2] += 0.1\n",
+    "p = np.array(here) + [0, 0, 0.1]\n",
+    "q = np.asarray(here) - np.array([0.0, 0.0, 0.05])\n",
+    "rule = dict(offset_m=[0.0, 0.01, 0.12])\n",
+    "axis = [0, 0, 1]\n",
+    "# a comment: [0.5, 0.1, 0.2]\nn = 12\nif z > 0.02:\n    pass\n",
+    "s = '[0.5, 0.1, 0.2]'\n",
+])
+def test_the_lint_allows_differences_rule_fields_axes_and_text(code: str) -> None:
+    rs.check_code(code)
+
+
+def test_code_that_does_not_compile_is_refused_with_the_line() -> None:
+    with pytest.raises(rs.LintError, match="line 2"):
+        rs.check_code("x = 1\ndef f(:\n")
+
+
+def fake_scene(*objects: tuple[str, str, tuple[float, float]]):
+    """A scene with clusters of the given colour, shape and centre (SYNTHETIC stand-ins with
+    the fields rank_objects and Anchor read)."""
+    from types import SimpleNamespace
+
+    from robo_perception.geometry import OrientedBox, Plane
+
+    clusters = []
+    for i, (color, shape, (x, y)) in enumerate(objects):
+        c = np.array([x, y, 0.02])
+        box = OrientedBox(center=c, axes=np.eye(3), extents=np.array([0.04, 0.04, 0.04]))
+        clusters.append(SimpleNamespace(id=i, color_name=color, shape_name=shape, center=c, obb=box,
+                                        points=np.tile(c, (50, 1)), top=0.04, held=False,
+                                        describe=lambda c=color, s=shape: f"{c} {s}"))
+    return SimpleNamespace(objects=clusters, plane=Plane(normal=np.array([0.0, 0.0, 1.0]), offset=0.0))
+
+
+def test_an_object_perception_cannot_find_or_cannot_tell_apart_is_a_clear_error() -> None:
+    skill = {"objects": {"item": {"prompt": "red box", "class": "box"}, "left": {"prompt": "left red box", "class": "box"}},
+             "rules": [{"id": "r1", "actor": "tcp", "anchor": {"object": "item", "feature": "top_face"},
+                        "offset_m": [0, 0, 0.1], "yaw_rad": 0.0, "tilt_rad": [math.pi, 0, 0]}]}
+    runner = rs.SkillRunner(skill, log=lambda e: None)
+    state = {"ee_pose": [0.3, 0.0, 0.4, math.pi, 0.0, 0.0]}
+    with pytest.raises(rs.AnchorError, match="no object matches 'red box'.*seen: blue plate"):
+        runner.target("r1", fake_scene(("blue", "plate", (0.5, 0.1))), state)
+    two = fake_scene(("red", "box", (0.5, -0.1)), ("red", "box", (0.5, 0.1)))
+    with pytest.raises(rs.AnchorError, match="ambiguous: 2 objects"):
+        runner.target("r1", two, state)
+    # A position word orders them: no ambiguity.
+    assert runner.find("left", two).center[1] == pytest.approx(0.1)
+    one = fake_scene(("red", "box", (0.5, -0.1)), ("blue", "plate", (0.5, 0.1)))
+    pose = runner.target("r1", one, state)
+    assert pose[:3] == pytest.approx([0.5, -0.1, 0.14])
+    with pytest.raises(rs.AnchorError, match="has no perception prompt"):
+        runner.find("nobody", one)
+
+
+# ---- the whole loop on real processes ----
+
+def r2g(*args: str, timeout: float = 600) -> tuple[int, str, str]:
+    p = subprocess.run([str(R2G), *args], capture_output=True, text=True, timeout=timeout)
+    return p.returncode, p.stdout, p.stderr
+
+
+def last_json(text: str) -> dict:
+    return json.loads(text.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def learned(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The paper's protocol on one seed: a scripted episode of pick_block_plate without skills,
+    extraction from it into a fresh library (admitted by two model-free runs on held-out seeds
+    with the objects moved up to 3 cm), then a second scripted episode given the skill."""
+    tmp = tmp_path_factory.mktemp("skills")
+    lib = tmp / "library"
+    rc, out, err = r2g("batch", "pick_block_plate", "--episodes", "1", "--skills-protocol", "learn", "--admit-runs", "2",
+                       "--library", str(lib), "--out", str(tmp / "batch"))
+    assert rc == 0, err[-3000:]
+    batch = last_json(out)
+    return {"tmp": tmp, "lib": lib, "batch": batch, "episode": tmp / "batch" / "episode-000-without",
+            "with": tmp / "batch" / "episode-000-with", "stderr": err}
+
+
+def test_extraction_labels_rounds_and_writes_an_admitted_skill(learned: dict) -> None:
+    report = json.loads((learned["episode"] / "extraction.json").read_text())
+    labels = {lab["round"]: lab["outcome"] for lab in report["labels"]}
+    assert labels[1] == "unknown" and labels[3] == "positive", labels
+    assert sum(v == "positive" for v in labels.values()) >= 5 and "negative" not in labels.values(), labels
+    assert report["merge"]["written"][0][:2] == ["add", "pick-place-on-plate"], report["merge"]
+    adm = report["admissions"][0]
+    assert adm["validated"], adm
+    versions = sorted((learned["lib"] / "pick-place-on-plate").glob("v*.json"))
+    assert [v.name for v in versions] == ["v0001.json", "v0002.json"]
+    skill = json.loads(versions[-1].read_text())
+    assert skill["status"] == "validated"
+    runs = [e for e in skill["evidence"] if e["source"] == "validation"]
+    assert len(runs) == 2 and all(e["seed"] != 0 for e in runs)
+    # No rule holds a base-frame position: each is relative to one of the skill's objects.
+    for rule in skill["rules"]:
+        assert rule["anchor"]["object"] in skill["objects"]
+        assert np.linalg.norm(rule["offset_m"]) < 0.4
+    rc, out, err = r2g("skills", "list", "--library", str(learned["lib"]))
+    assert rc == 0 and out.startswith("pick-place-on-plate v2 Validated 2/2"), out
+
+
+def test_the_protocol_reports_both_arms_with_paired_seeds(learned: dict) -> None:
+    b = learned["batch"]
+    assert "mechanics only" in b["label"]
+    row = b["per_seed"][0]
+    assert row["without"]["success"] and row["with"]["success"], row
+    assert row["without"]["run_dir"].endswith("episode-000-without") and row["with"]["run_dir"].endswith("episode-000-with")
+    # The second (scripted) episode ran the skill instead of re-deriving every stage.
+    assert row["with"]["responses"] < row["without"]["responses"]
+    assert b["with_skills"]["tokens_in_mean"] < b["without_skills"]["tokens_in_mean"]
+    assert "SKILL RESULT" in (learned["with"] / "rounds" / "002" / "feedback.txt").read_text()
+
+
+def test_extracting_the_same_record_again_changes_nothing(learned: dict) -> None:
+    before = sorted(p.name for p in (learned["lib"] / "pick-place-on-plate").glob("v*.json"))
+    rc, out, err = r2g("skills", "extract", str(learned["episode"]), "--library", str(learned["lib"]), "--admit-runs", "0")
+    assert rc == 0, err[-2000:]
+    x = last_json(out)
+    assert x["written"] == [] and x["unchanged"] == 1, x
+    assert sorted(p.name for p in (learned["lib"] / "pick-place-on-plate").glob("v*.json")) == before
+
+
+def test_a_malformed_or_bogus_extraction_answer_changes_nothing(learned: dict, tmp_path: Path) -> None:
+    before = sorted(p.name for p in (learned["lib"] / "pick-place-on-plate").glob("v*.json"))
+    for name, answer, says in [
+        ("notjson", "Sure! Here are the operations: add a skill.", "holds no JSON object"),
+        ("unknown", json.dumps({"operations": [{"op": "support", "skill": "pick-place-on-plate", "evidence": ["E42"]}]}),
+         "cites unknown evidence"),
+    ]:
+        script = tmp_path / f"{name}.json"
+        script.write_text(json.dumps({"gym": "pick_block_plate", "model": "synthetic", "responses": [answer]}))
+        rc, out, err = r2g("skills", "extract", str(learned["episode"]), "--library", str(learned["lib"]),
+                           "--llm", f"scripted:{script}", "--admit-runs", "0")
+        assert rc == 0, err[-2000:]
+        assert says in err, err[-2000:]
+        assert last_json(out)["written"] == []
+    assert sorted(p.name for p in (learned["lib"] / "pick-place-on-plate").glob("v*.json")) == before
+    events = [json.loads(line) for line in (learned["lib"] / "events.jsonl").read_text().splitlines()]
+    assert sum(e["event"] == "dropped" for e in events) >= 2
+
+
+def test_the_skill_runs_without_a_model_where_the_objects_moved(learned: dict) -> None:
+    rc, out, err = r2g("skills", "run", "pick-place-on-plate", "pick_block_plate", "--library", str(learned["lib"]),
+                       "--seed", "4242", "--perturb", "xy=0.05,yaw=30", "--out", str(learned["tmp"] / "run"))
+    r = last_json(out)
+    assert r["responses"] == 0 and r["tokens_in"] == 0 and r["tokens_out"] == 0
+    assert rc == 0 and r["success"], (r["stop_reason"], err[-2000:])
+    assert (learned["tmp"] / "run" / "result.json").is_file()
+
+
+def test_an_episode_given_skills_logs_its_selection_and_the_viewer_shows_it(learned: dict) -> None:
+    out_dir = learned["with"]
+    sel = json.loads((out_dir / "skills.json").read_text())
+    assert sel["chosen"] == ["pick-place-on-plate"], sel
+    assert "box" in sel["perceived_classes"]
+    assert (out_dir / "scratch" / "skills" / "pick-place-on-plate.json").is_file()
+    assert "### skill pick-place-on-plate" in (out_dir / "system_prompt.md").read_text()
+    dom = chromium_dom(out_dir / "index.html")
+    assert "Skills selected: pick-place-on-plate" in dom, dom[-3000:]
