@@ -181,6 +181,64 @@ enum Cmd {
     },
     /// Write a gym's demonstration (demo.csv) from its TCP keyframes (keyframes.toml) with IK.
     AuthorDemo { gym: String },
+    /// Import a recorded demonstration into a new gym folder (scene, demo.csv, record.json,
+    /// events.json, import.json): `droid <episode folder>` (trajectory.h5 + metadata_*.json) or
+    /// `egodex <file.hdf5>` (a hand retargeted to the gripper). The scene is given; the folder
+    /// appears whole or not at all. Ends with one JSON line.
+    Import {
+        #[command(subcommand)]
+        which: ImportCmd,
+    },
+    /// Expand a gym into a pool of variants (object size and pose, support height, friction and
+    /// mass, distractors, lighting and colours), each factor swept alone for its feasible range
+    /// first, then N candidates combining one to three factors; the demonstration is adapted to
+    /// the moved objects and re-solved with IK; failures are shrunk toward the parent; only
+    /// variants that pass `r2g validate` are kept, near-duplicates removed. Each variant is a
+    /// gym folder (usable by up, replay, episode, batch). Writes report.json and
+    /// contact_sheet.png into the pool; ends with one JSON line.
+    Augment {
+        /// Gym name, gym folder, or scene file.
+        gym: String,
+        #[arg(long, default_value_t = 50)]
+        candidates: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// The pool folder (must not exist, or be empty).
+        #[arg(long)]
+        out: std::path::PathBuf,
+        /// Candidates validated at once (threads; each a self-contained unit of work).
+        #[arg(long, default_value_t = 1)]
+        jobs: usize,
+        /// Times a failed candidate is shrunk toward its parent before it is dropped.
+        #[arg(long, default_value_t = 2)]
+        shrink_tries: usize,
+        /// Skip the contact sheet (no rendering at all).
+        #[arg(long)]
+        no_sheet: bool,
+        /// Only these factors (comma-separated): object_size, object_pose, support_height,
+        /// friction_mass, distractors, visual.
+        #[arg(long, value_delimiter = ',')]
+        factors: Vec<String>,
+        /// At most this many sweep levels per parameter and side (nearest the parent first).
+        #[arg(long)]
+        levels: Option<usize>,
+    },
+    /// Run the validation gate: the gym executed natively from its inputs (lockstep, in
+    /// process), every input hashed into evidence.json; checks: no initial penetration and at
+    /// rest, every waypoint reachable, event timing against the source, task success, worst
+    /// penetration, final stability. Ends with one JSON line; exit status 1 when a check fails.
+    Validate {
+        /// Gym name, gym folder, or scene file.
+        gym: String,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Folder for evidence.json (default: runs/validate/<gym folder>).
+        #[arg(long)]
+        out: Option<std::path::PathBuf>,
+        /// Also write the native trace (trace.json).
+        #[arg(long)]
+        keep_trace: bool,
+    },
     /// Kinematics over JSON lines: reads one request per stdin line, answers one line each.
     Kin {
         #[command(subcommand)]
@@ -196,6 +254,45 @@ enum Cmd {
     Bench {
         #[command(subcommand)]
         which: BenchCmd,
+    },
+}
+
+#[derive(Subcommand, Debug)]
+enum ImportCmd {
+    /// A DROID raw episode: a folder with trajectory.h5 and metadata_*.json. Joints are gated on
+    /// our FK against the recorded flange pose (panda_link8 in panda_link0).
+    Droid {
+        episode: std::path::PathBuf,
+        /// The scene the demonstration happened in (its robot, objects, task).
+        #[arg(long)]
+        scene: String,
+        /// The new gym folder (must not exist, or be empty).
+        #[arg(long)]
+        out: std::path::PathBuf,
+        /// Largest accepted FK position error, m.
+        #[arg(long, default_value_t = 0.01)]
+        fk_gate_m: f64,
+        /// Largest accepted FK rotation error, rad.
+        #[arg(long, default_value_t = 0.05)]
+        fk_gate_rad: f64,
+    },
+    /// An EgoDex episode (.hdf5): the hand's pinch retargeted to the parallel gripper.
+    Egodex {
+        episode: std::path::PathBuf,
+        #[arg(long)]
+        scene: String,
+        #[arg(long)]
+        out: std::path::PathBuf,
+        /// left, right, or auto (the hand seen most that opens and closes).
+        #[arg(long, default_value = "auto")]
+        hand: String,
+        /// JSON {"base_from_world": 4x4 row-major}: ARKit world to robot base. Without it the
+        /// registration is estimated from the task's object and target in the scene.
+        #[arg(long)]
+        registration: Option<std::path::PathBuf>,
+        /// Frames whose pinch points are less confident than this are dropped.
+        #[arg(long, default_value_t = 0.5)]
+        min_confidence: f64,
     },
 }
 
@@ -696,6 +793,31 @@ fn main() {
             }
         }
         Cmd::AuthorDemo { gym } => author_demo(&gym),
+        Cmd::Import { which } => import(which),
+        Cmd::Augment { gym, candidates, seed, out, jobs, shrink_tries, no_sheet, factors, levels } => (|| {
+            let mut o = real2sim::augment::Options::new(out);
+            o.candidates = candidates;
+            o.seed = seed;
+            o.jobs = jobs;
+            o.shrink_tries = shrink_tries;
+            o.sheet = !no_sheet;
+            o.max_levels = levels.unwrap_or(usize::MAX);
+            if !factors.is_empty() {
+                o.factors = factors
+                    .iter()
+                    .map(|f| {
+                        real2sim::augment::FACTORS.iter().copied().find(|k| k.name() == f).ok_or_else(|| {
+                            anyhow::anyhow!(
+                                "--factors: unknown factor '{f}' (accepted: {})",
+                                real2sim::augment::FACTORS.map(|k| k.name()).join(", ")
+                            )
+                        })
+                    })
+                    .collect::<anyhow::Result<_>>()?;
+            }
+            augment(&gym, o)
+        })(),
+        Cmd::Validate { gym, seed, out, keep_trace } => validate(&gym, seed, out, keep_trace),
         Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => bench::sim::run(&gyms, frames).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Skills { gyms, seeds, first_seed, perturb, jobs, out } } => {
             let o = bench::skills::Options { gyms, seeds, first_seed, perturb: perturb.to_string(), jobs, out };
@@ -775,6 +897,74 @@ fn replay(gym: &str, placement: &PlacementArgs, do_nothing: bool, out: &std::pat
     }
     println!("{}", serde_json::to_string(&r.evaluation)?);
     Ok(if r.evaluation.success { 0 } else { 1 })
+}
+
+fn import(which: ImportCmd) -> anyhow::Result<i32> {
+    let done = match which {
+        ImportCmd::Droid { episode, scene, out, fk_gate_m, fk_gate_rad } => real2sim::import::droid(
+            &episode,
+            &launch::resolve_scene(&scene)?,
+            &out,
+            real2sim::droid::FkGate { position_m: fk_gate_m, rotation_rad: fk_gate_rad },
+        )?,
+        ImportCmd::Egodex { episode, scene, out, hand, registration, min_confidence } => real2sim::import::egodex(
+            &episode,
+            &launch::resolve_scene(&scene)?,
+            &out,
+            &hand,
+            registration.as_deref(),
+            real2sim::retarget::HandParams { min_confidence, ..Default::default() },
+        )?,
+    };
+    eprintln!("r2g import: wrote {} ({} rows)", done.dir.display(), done.rows);
+    let mut line = done.report;
+    line["gym"] = serde_json::json!(done.dir.display().to_string());
+    println!("{line}");
+    Ok(0)
+}
+
+fn augment(gym: &str, o: real2sim::augment::Options) -> anyhow::Result<i32> {
+    let scene = launch::resolve_scene(gym)?;
+    let r = real2sim::augment::augment(&scene, &o, &|m: &str| eprintln!("r2g augment: {m}"))?;
+    eprintln!("single-factor sweeps (feasible range per parameter):");
+    for (k, v) in &r.feasible {
+        eprintln!("  {k:<16} [{:.3}, {:.3}]", v[0], v[1]);
+    }
+    eprintln!("{} combined candidates, per factor:", r.candidates);
+    for (f, c) in &r.per_factor {
+        eprintln!("  {f:<16} {c:?}");
+    }
+    eprintln!(
+        "kept {} variants ({} near-duplicates removed); {:.1} validated candidates per minute; {} gate runs in {:.0} s",
+        r.kept.len(),
+        r.deduplicated.len(),
+        r.validated_per_minute,
+        r.gate_runs,
+        r.wall_s
+    );
+    let line = serde_json::json!({
+        "parent": r.parent, "pool": o.out.display().to_string(), "candidates": r.candidates, "kept": r.kept.len(),
+        "deduplicated": r.deduplicated.len(), "dropped": r.dropped.len(), "feasible": r.feasible, "per_factor": r.per_factor,
+        "validated_per_minute": r.validated_per_minute, "gate_runs": r.gate_runs, "wall_s": r.wall_s,
+        "contact_sheet": r.contact_sheet,
+    });
+    println!("{line}");
+    Ok(0)
+}
+
+fn validate(gym: &str, seed: u64, out: Option<std::path::PathBuf>, keep_trace: bool) -> anyhow::Result<i32> {
+    let scene = launch::resolve_scene(gym)?;
+    let name = scene.parent().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let out = out.unwrap_or_else(|| std::path::Path::new("runs/validate").join(&name));
+    let mut opts = real2sim::validate::Options::new(out);
+    opts.seed = seed;
+    opts.keep_trace = keep_trace;
+    let (ev, path) = real2sim::validate::validate(&scene, &opts)?;
+    for (name, c) in &ev.checks {
+        eprintln!("  {} {name}: {}", if c.pass { "pass" } else { "FAIL" }, c.value);
+    }
+    println!("{}", ev.line(&path));
+    Ok(if ev.success { 0 } else { 1 })
 }
 
 fn author_demo(gym: &str) -> anyhow::Result<i32> {
