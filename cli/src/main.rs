@@ -222,6 +222,11 @@ enum Cmd {
         /// At most this many sweep levels per parameter and side (nearest the parent first).
         #[arg(long)]
         levels: Option<usize>,
+        /// Validate candidates as fleet jobs (`r2g validate <variant>` each): --workers N on this
+        /// machine, or --ray auto|ADDRESS one Ray task per candidate (the pool folder must be
+        /// on storage every node sees).
+        #[command(flatten)]
+        fleet: FleetArgs,
     },
     /// Run the validation gate: the gym executed natively from its inputs (lockstep, in
     /// process), every input hashed into evidence.json; checks: no initial penetration and at
@@ -794,11 +799,17 @@ fn main() {
         }
         Cmd::AuthorDemo { gym } => author_demo(&gym),
         Cmd::Import { which } => import(which),
-        Cmd::Augment { gym, candidates, seed, out, jobs, shrink_tries, no_sheet, factors, levels } => (|| {
-            let mut o = real2sim::augment::Options::new(out);
+        Cmd::Augment { gym, candidates, seed, out, jobs, shrink_tries, no_sheet, factors, levels, fleet } => (|| {
+            let mut o = real2sim::augment::Options::new(std::path::absolute(&out)?);
             o.candidates = candidates;
             o.seed = seed;
             o.jobs = jobs;
+            if let Some(backend) = fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers) {
+                // Each candidate a job; as many in flight as workers were asked for (Ray: the
+                // cluster's own cap).
+                o.jobs = fleet.workers.unwrap_or(jobs.max(4));
+                o.validator = fleet_validator(backend);
+            }
             o.shrink_tries = shrink_tries;
             o.sheet = !no_sheet;
             o.max_levels = levels.unwrap_or(usize::MAX);
@@ -816,7 +827,8 @@ fn main() {
                     .collect::<anyhow::Result<_>>()?;
             }
             augment(&gym, o)
-        })(),
+        })(
+        ),
         Cmd::Validate { gym, seed, out, keep_trace } => validate(&gym, seed, out, keep_trace),
         Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => bench::sim::run(&gyms, frames).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Skills { gyms, seeds, first_seed, perturb, jobs, out } } => {
@@ -921,6 +933,29 @@ fn import(which: ImportCmd) -> anyhow::Result<i32> {
     line["gym"] = serde_json::json!(done.dir.display().to_string());
     println!("{line}");
     Ok(0)
+}
+
+/// Augmentation's gate as fleet jobs: `r2g validate <variant> --out <variant>` on a worker or
+/// a Ray task, its evidence.json read back.
+fn fleet_validator(backend: fleet::Backend) -> real2sim::augment::Validator {
+    std::sync::Arc::new(move |dir: &std::path::Path| {
+        let args = vec!["validate".to_string(), dir.display().to_string(), "--out".into(), dir.display().to_string()];
+        let mut failure = None;
+        fleet::run(&[fleet::Job { id: 0, args }], &backend, dir, |r| {
+            if r["value"].is_null() {
+                failure = Some(format!("the validation job failed: {}", r.get("error").unwrap_or(&r["stderr_tail"])));
+            }
+        })?;
+        let ev = std::fs::read_to_string(dir.join("evidence.json")).map_err(|e| {
+            anyhow::anyhow!(
+                "{}: no evidence.json ({e}){}",
+                dir.display(),
+                failure.map(|f| format!("; {f}")).unwrap_or_default()
+            )
+        })?;
+        let ev: serde_json::Value = serde_json::from_str(&ev).map_err(anyhow::Error::from)?;
+        Ok(real2sim::augment::Verdict::from_evidence(&ev))
+    })
 }
 
 fn augment(gym: &str, o: real2sim::augment::Options) -> anyhow::Result<i32> {
