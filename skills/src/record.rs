@@ -5,7 +5,7 @@
 //! The label comes from what was measured, never from the model's words: a round whose program
 //! raised, was stopped by the sandbox, or had a chunk refused or failed is **negative**, as is one
 //! in which an object fell (dropped 5 cm while nothing held it) or toppled (tilted 30° while
-//! free and ended lying on the table or floor); one that executed every chunk it sent without that is **positive**; a round that sent
+//! free and ended lying on the table or floor), or that closed the gripper on nothing; one that executed every chunk it sent without that is **positive**; a round that sent
 //! nothing is **unknown**. The task checks passing before and after are reported beside (a
 //! grasp rightly undoes "released"), not judged. The native trace is read here, after the
 //! episode: the policy never saw it.
@@ -55,7 +55,7 @@ impl Round {
 
 pub struct RunRecord {
     pub dir: PathBuf,
-    /// The run folder's name: the episode id evidence cites.
+    /// The episode id evidence cites: the run folder's name and the instance that ran it.
     pub name: String,
     pub gym: String,
     pub task: String,
@@ -80,6 +80,8 @@ pub struct Effects {
     pub fell: Vec<(String, f64)>,
     /// Objects that tilted over while nobody held them (name, radians).
     pub toppled: Vec<(String, f64)>,
+    /// The fingers ended (nearly) shut with nothing between them.
+    pub closed_on_nothing: bool,
     /// Task checks passing at the round's start and end.
     pub checks_before: usize,
     pub checks_after: usize,
@@ -129,7 +131,13 @@ impl RunRecord {
             });
         }
         let result = read_json(&dir.join("result.json")).ok();
-        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        // The run folder's name with the instance that ran it (`ep<pid>-<ms>-<n>`, unique on this
+        // machine): folders named alike (`episode-000-without` of two batches) stay apart.
+        let folder = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let name = match config["instance"].as_str() {
+            Some(i) if !i.is_empty() => format!("{folder}@{i}"),
+            _ => folder,
+        };
         Ok(Self {
             name,
             gym: config["gym"].as_str().unwrap_or_default().to_string(),
@@ -145,7 +153,9 @@ impl RunRecord {
     /// The trace of the sim-host episode numbered `k` (1 ran from start to the host's reset).
     fn trace(&self, k: usize) -> Option<Trace> {
         let p = self.dir.join("episodes").join(format!("episode-{k}.trace.json"));
-        serde_json::from_str(&std::fs::read_to_string(p).ok()?).ok()
+        let t: Trace = serde_json::from_str(&std::fs::read_to_string(p).ok()?).ok()?;
+        // A trace whose samples do not all hold every object is not read (no indexing past them).
+        t.samples.iter().all(|s| s.objects.len() == t.objects.len()).then_some(t)
     }
 
     /// Per round: the sim-host episode its end falls in and the simulated times (s) of its
@@ -217,6 +227,9 @@ impl RunRecord {
             }
             let effects = cached.as_ref().and_then(|(_, t)| effects(&scene, t, t0, t1));
             if let Some(e) = &effects {
+                if closes(r) && e.closed_on_nothing {
+                    reasons.push("the gripper was closed and shut on nothing".into());
+                }
                 for (o, d) in &e.fell {
                     reasons.push(format!("{o} fell {d:.2} m while nothing held it"));
                 }
@@ -236,6 +249,22 @@ impl RunRecord {
         }
         Ok(out)
     }
+}
+
+/// Whether a round commanded the gripper from open to closed (the last waypoint's gripper value
+/// above +0.5 after one below 0, starting from the measured value).
+fn closes(r: &Round) -> bool {
+    let mut g = r.state_before["gripper"][0].as_f64().unwrap_or(-1.0);
+    for c in r.chunks().filter(|c| c["result"] == 1) {
+        let width = if c["type"] == "joint" { 7 } else { 6 };
+        if let Some(v) = c["actions"].as_array().and_then(|a| a.last()).and_then(|w| w[width].as_f64()) {
+            if g < 0.0 && v > 0.5 {
+                return true;
+            }
+            g = v;
+        }
+    }
+    false
 }
 
 /// Angle between the object's z axis in two orientations (w, x, y, z).
@@ -264,6 +293,9 @@ fn passing(scene: &Scene, trace: &Trace, upto: usize) -> (usize, usize) {
 /// What changed between the samples nearest `t0` and `t1` of an episode's trace.
 pub fn effects(scene: &Scene, trace: &Trace, t0: f64, t1: f64) -> Option<Effects> {
     let (i0, i1) = (at(trace, t0)?, at(trace, t1)?);
+    if i1 < i0 {
+        return None;
+    }
     let (s0, s1): (&Sample, &Sample) = (&trace.samples[i0], &trace.samples[i1]);
     let robot = trace.owners.iter().position(|o| o == "robot")? as u16;
     let table = trace.owners.iter().position(|o| o == "table").map(|i| i as u16);
@@ -316,6 +348,8 @@ pub fn effects(scene: &Scene, trace: &Trace, t0: f64, t1: f64) -> Option<Effects
             }
         }
     }
+    let in_hand = trace.objects.iter().enumerate().any(|(k, _)| touching(s1, k as u16, robot));
+    e.closed_on_nothing = s1.finger_m < 0.1 * trace.finger_max_m && !in_hand;
     let (b, total) = passing(scene, trace, i0);
     let (a, _) = passing(scene, trace, i1);
     e.checks_before = b;
