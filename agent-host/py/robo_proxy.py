@@ -147,7 +147,21 @@ class Session:
 
     def log(self, entry: dict) -> None:
         if len(self.calls_log) < CALLS_KEPT:
-            self.calls_log.append(entry)
+            self.calls_log.append(_strict(entry))
+
+
+def _strict(v: object) -> object:
+    """A value the host's JSON reader takes: what the program passed may hold NaN, infinities
+    or integers past any float; those are kept as their text."""
+    if isinstance(v, float) and (v != v or abs(v) == float("inf")):
+        return repr(v)
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) > 2**63:
+        return f"an integer of {len(str(abs(v)))} digits"
+    if isinstance(v, dict):
+        return {str(k): _strict(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_strict(x) for x in v]
+    return v
 
 
 def save_raw(path: str) -> None:

@@ -276,9 +276,7 @@ pub fn batch(
     let dir = batch_dir(o);
     let mut rows = Vec::new();
     for i in 0..episodes {
-        let seed = if o.seed == 0 { 0 } else { o.seed + u64::from(i) };
-        let e = EpisodeOpts { out: Some(dir.join(format!("episode-{i:03}"))), seed, ..o.clone() };
-        let r = episode(&e);
+        let r = episode(&batch_episode(o, &dir, i));
         on_episode(i, &r);
         match r {
             Ok(r) => rows.push(serde_json::to_value(&r)?),
@@ -293,20 +291,29 @@ fn batch_dir(o: &EpisodeOpts) -> PathBuf {
     o.out.clone().unwrap_or_else(|| root().join("runs").join("batches").join(format!("{}-{stamp}", o.gym)))
 }
 
-/// The `r2g episode` arguments that run `o` into `out` (one job of a batch on a fleet).
-pub fn episode_args(o: &EpisodeOpts, out: &Path) -> Vec<String> {
-    let mut a: Vec<String> = vec!["episode".into(), o.gym.clone(), "--llm".into(), o.llm.clone()];
+/// The options of `o` as `r2g episode`/`r2g batch` flags (paths made absolute: a job may run
+/// in another folder or on another node), without the gym, `--out` or the subcommand.
+pub fn episode_flags(o: &EpisodeOpts) -> Vec<String> {
+    let abs = |p: &Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf()).display().to_string();
+    // An endpoint file is a path; `scripted[:file]`, `record:file` and `replay:file` carry one.
+    let llm = match o.llm.split_once(':') {
+        Some((kind, file)) if ["scripted", "record", "replay"].contains(&kind) => {
+            format!("{kind}:{}", abs(Path::new(file)))
+        }
+        None if o.llm != "scripted" => abs(Path::new(&o.llm)),
+        _ => o.llm.clone(),
+    };
+    let mut a: Vec<String> = vec!["--llm".into(), llm];
     a.extend(["--provider".into(), o.provider.clone(), "--max-decisions".into(), o.max_decisions.to_string()]);
     a.extend(["--control-steps".into(), o.control_steps.to_string(), "--wall-s".into(), o.wall_s.to_string()]);
-    a.extend(["--out".into(), out.display().to_string()]);
     if o.wall {
         a.push("--wall".into());
     }
     if let Some(rc) = &o.robot_config {
-        a.extend(["--robot-config".into(), rc.display().to_string()]);
+        a.extend(["--robot-config".into(), abs(rc)]);
     }
     if let Some(m) = &o.memory {
-        a.extend(["--memory".into(), m.display().to_string()]);
+        a.extend(["--memory".into(), abs(m)]);
     }
     if o.seed != 0 {
         a.extend(["--seed".into(), o.seed.to_string()]);
@@ -315,9 +322,34 @@ pub fn episode_args(o: &EpisodeOpts, out: &Path) -> Vec<String> {
         a.extend(["--perturb".into(), p.clone()]);
     }
     if let Some(lib) = &o.library {
-        a.extend(["--skills".into(), "use".into(), "--library".into(), lib.display().to_string()]);
+        a.extend(["--skills".into(), "use".into(), "--library".into(), abs(lib)]);
     }
     a
+}
+
+/// The gym as a job names it: a pack name as it is, a folder or scene file absolute.
+pub fn gym_arg(gym: &str) -> String {
+    let p = Path::new(gym);
+    if p.exists() {
+        std::path::absolute(p).map(|p| p.display().to_string()).unwrap_or_else(|_| gym.to_string())
+    } else {
+        gym.to_string()
+    }
+}
+
+/// The `r2g episode` arguments that run `o` into `out` (one job of a batch on a fleet).
+pub fn episode_args(o: &EpisodeOpts, out: &Path) -> Vec<String> {
+    let mut a: Vec<String> = vec!["episode".into(), gym_arg(&o.gym)];
+    a.extend(episode_flags(o));
+    a.extend(["--out".into(), out.display().to_string()]);
+    a
+}
+
+/// Episode i of a batch: its own folder, and seed `seed + i` unless the seed is 0 (the scene as
+/// written for every episode), the same locally and on a fleet.
+fn batch_episode(o: &EpisodeOpts, dir: &Path, i: u32) -> EpisodeOpts {
+    let seed = if o.seed == 0 { 0 } else { o.seed + u64::from(i) };
+    EpisodeOpts { out: Some(dir.join(format!("episode-{i:03}"))), seed, ..o.clone() }
 }
 
 /// [`batch`] on a fleet: every episode an `r2g episode` job on `backend` (local workers, or Ray
@@ -332,7 +364,11 @@ pub fn batch_on(
 ) -> anyhow::Result<Value> {
     let dir = std::path::absolute(batch_dir(o))?;
     let jobs: Vec<fleet::Job> = (0..episodes)
-        .map(|i| fleet::Job { id: i as usize, args: episode_args(o, &dir.join(format!("episode-{i:03}"))) })
+        .map(|i| {
+            let e = batch_episode(o, &dir, i);
+            let out = e.out.clone().unwrap_or_default();
+            fleet::Job { id: i as usize, args: episode_args(&e, &out) }
+        })
         .collect();
     let mut rows: Vec<(u64, Value)> = Vec::new();
     fleet::run(&jobs, backend, &dir, |r| {
@@ -435,4 +471,43 @@ pub fn exec(file: &Path, o: &ExecOpts) -> anyhow::Result<Value> {
         v["memory_added"] = json!(crate::memory::collect(&scratch, dir, &mut 0));
     }
     Ok(v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn opts(seed: u64) -> EpisodeOpts {
+        EpisodeOpts {
+            gym: "pick_block_plate".into(),
+            llm: "scripted".into(),
+            provider: "openai".into(),
+            max_decisions: 50,
+            control_steps: 600,
+            wall: false,
+            out: None,
+            robot_config: None,
+            wall_s: 120.0,
+            memory: None,
+            seed,
+            perturb: Some("xy=0.05,yaw=30".into()),
+            skills: None,
+            library: Some(PathBuf::from("lib")),
+        }
+    }
+
+    #[test]
+    fn a_fleet_job_runs_the_episode_a_local_batch_would() {
+        let dir = Path::new("/tmp/b");
+        for (seed, i, want) in [(5u64, 0u32, Some("5")), (5, 3, Some("8")), (0, 3, None)] {
+            let e = batch_episode(&opts(seed), dir, i);
+            let args = episode_args(&e, e.out.as_deref().expect("out"));
+            let flag = |f: &str| args.iter().position(|a| a == f).map(|k| args[k + 1].clone());
+            assert_eq!(flag("--seed").as_deref(), want, "{args:?}");
+            assert_eq!(flag("--out").as_deref(), Some(format!("/tmp/b/episode-{i:03}").as_str()));
+            assert_eq!(flag("--perturb").as_deref(), Some("xy=0.05,yaw=30"));
+            // Paths are absolute: a job may run in another folder.
+            assert!(flag("--library").is_some_and(|l| l.starts_with('/')), "{args:?}");
+        }
+    }
 }

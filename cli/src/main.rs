@@ -110,12 +110,14 @@ enum Cmd {
     Episode {
         #[command(flatten)]
         opts: EpisodeArgs,
-        /// After the episode, extract skills from it into the library (as `r2g skills extract`).
+        /// After the episode, extract skills from it into the library (as `r2g skills extract`;
+        /// the same as `--skills learn`).
         #[arg(long)]
         learn: bool,
-        /// Endpoint for the extraction (default: scripted, the gym's recorded extraction answers).
-        #[arg(long, default_value = "scripted")]
-        learn_llm: String,
+        /// Endpoint for the extraction (default: the episode's own; a scripted episode's
+        /// extraction replays the gym's recorded extraction answers).
+        #[arg(long)]
+        learn_llm: Option<String>,
         #[command(flatten)]
         admit: skills_cmd::AdmitArgs,
     },
@@ -127,19 +129,16 @@ enum Cmd {
         episodes: u32,
         #[command(flatten)]
         opts: EpisodeArgs,
-        /// `learn`: the paper's protocol — per seed, an episode without skills, extraction from
-        /// it, then an episode on the same seed with the selected skills; figures per arm.
-        #[arg(long = "skills-protocol", value_name = "learn")]
-        protocol: Option<String>,
-        /// Endpoint for the extractions of `--skills-protocol learn`.
-        #[arg(long, default_value = "scripted")]
-        learn_llm: String,
+        /// Endpoint for the extractions of `--skills learn` (default: the episodes' own; scripted
+        /// episodes' extractions replay the gym's recorded extraction answers).
+        #[arg(long)]
+        learn_llm: Option<String>,
         #[command(flatten)]
         admit: skills_cmd::AdmitArgs,
         #[command(flatten)]
         fleet: FleetArgs,
     },
-    /// The skill library (robot-skill/skills by default): list, show, extract from a run,
+    /// The skill library (runs/skill-library by default): list, show, extract from a run,
     /// admit, run without a model, select.
     Skills {
         #[command(subcommand)]
@@ -371,10 +370,13 @@ struct EpisodeArgs {
     memory: Option<std::path::PathBuf>,
     #[command(flatten)]
     placement: PlacementArgs,
-    /// `use`: give the episode skills selected from the library (see --library); `off`: none.
-    #[arg(long, default_value = "off", value_parser = ["off", "use"])]
+    /// `use`: give the episode skills selected from the library (see --library); `learn`: for
+    /// `r2g episode`, extract skills from it afterwards; for `r2g batch`, the paper's protocol —
+    /// per seed an episode without skills, extraction from it, then an episode on the same seed
+    /// with the selected skills, figures per arm; `off`: none.
+    #[arg(long, default_value = "off", value_parser = ["off", "use", "learn"])]
     skills: String,
-    /// The skill library (default: robot-skill/skills).
+    /// The skill library (default: runs/skill-library).
     #[arg(long)]
     library: Option<std::path::PathBuf>,
 }
@@ -685,31 +687,36 @@ fn main() {
         }),
         Cmd::Episode { opts, learn, learn_llm, admit } => {
             let library = opts.library();
+            let learn = learn || opts.skills == "learn";
+            let use_skills = opts.skills == "use";
+            let learn_llm = learn_llm.unwrap_or_else(|| skills::learn::extraction_llm(&opts.llm));
             opts.episode_opts().and_then(|o| session::episode(&o)).and_then(|r| {
                 println!("{}", serde_json::to_string(&r)?);
                 if learn {
                     let lo = skills::learn::LearnOpts {
                         admit: admit.opts(),
-                        ..skills::learn::LearnOpts::new(library, &learn_llm)
+                        ..skills::learn::LearnOpts::new(library.clone(), &learn_llm)
                     };
                     let l = skills::learn::learn(std::path::Path::new(&r.run_dir), &lo)?;
                     eprintln!(
-                        "r2g episode --learn: wrote {:?}, dropped {}, admissions {:?}",
+                        "r2g episode --learn ({} extraction): wrote {:?}, dropped {}, admissions {:?}",
+                        l.llm_source,
                         l.merge.written,
                         l.merge.dropped.len(),
                         l.admissions.iter().map(|a| (&a.skill, a.validated)).collect::<Vec<_>>()
                     );
                 }
+                if use_skills {
+                    let lo = skills::learn::LearnOpts::new(library.clone(), "scripted");
+                    skills::learn::record_use(&library, std::path::Path::new(&r.run_dir), &lo)?;
+                }
                 Ok(if r.success { 0 } else { 1 })
             })
         }
         Cmd::Skills { which } => skills_cmd::run(which),
-        Cmd::Batch { episodes, opts, protocol: Some(p), learn_llm, admit, fleet } => {
-            if p != "learn" {
-                eprintln!("r2g: error: --skills-protocol takes `learn`");
-                std::process::exit(2);
-            }
+        Cmd::Batch { episodes, opts, learn_llm, admit, fleet } if opts.skills == "learn" => {
             let library = opts.library();
+            let learn_llm = learn_llm.unwrap_or_else(|| skills::learn::extraction_llm(&opts.llm));
             let lo =
                 skills::learn::LearnOpts { admit: admit.opts(), ..skills::learn::LearnOpts::new(library, &learn_llm) };
             let backend = fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers);
@@ -743,27 +750,41 @@ fn main() {
                 })
             })
         }
-        Cmd::Batch { episodes, opts, fleet, .. } => opts.episode_opts().and_then(|o| {
-            match fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers) {
-                None => session::batch(&o, episodes, |i, r| match r {
-                    Ok(r) => eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses),
-                    Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),
-                }),
-                Some(b) => session::batch_on(&o, episodes, &b, |i, r| match r.get("error") {
-                    Some(e) => eprintln!("r2g batch: episode {i}: {}", e.as_str().unwrap_or("failed")),
-                    None => {
-                        eprintln!("r2g batch: episode {i}: success {} in {} responses", r["success"], r["responses"])
-                    }
-                }),
-            }
-            .map(|v| {
-                println!("{v}");
-                // Failed tasks are results; a batch none of whose episodes could run at all (the
-                // endpoint or the gym failing every time) is a failure of the batch.
-                let ran_none = v["episodes"].as_u64().is_some_and(|n| n > 0) && v["errors"] == v["episodes"];
-                i32::from(ran_none)
+        Cmd::Batch { episodes, opts, fleet, .. } => {
+            let library = (opts.skills == "use").then(|| opts.library());
+            opts.episode_opts().and_then(|o| {
+                match fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers) {
+                    None => session::batch(&o, episodes, |i, r| match r {
+                        Ok(r) => {
+                            eprintln!("r2g batch: episode {i}: success {} in {} responses", r.success, r.responses);
+                            if let Some(lib) = &library {
+                                let lo = skills::learn::LearnOpts::new(lib.clone(), "scripted");
+                                if let Err(e) = skills::learn::record_use(lib, std::path::Path::new(&r.run_dir), &lo) {
+                                    eprintln!("r2g batch: episode {i}: the skills' use was not recorded: {e:#}");
+                                }
+                            }
+                        }
+                        Err(e) => eprintln!("r2g batch: episode {i}: {e:#}"),
+                    }),
+                    Some(b) => session::batch_on(&o, episodes, &b, |i, r| match r.get("error") {
+                        Some(e) => eprintln!("r2g batch: episode {i}: {}", e.as_str().unwrap_or("failed")),
+                        None => {
+                            eprintln!(
+                                "r2g batch: episode {i}: success {} in {} responses",
+                                r["success"], r["responses"]
+                            )
+                        }
+                    }),
+                }
+                .map(|v| {
+                    println!("{v}");
+                    // Failed tasks are results; a batch none of whose episodes could run at all (the
+                    // endpoint or the gym failing every time) is a failure of the batch.
+                    let ran_none = v["episodes"].as_u64().is_some_and(|n| n > 0) && v["errors"] == v["episodes"];
+                    i32::from(ran_none)
+                })
             })
-        }),
+        }
         Cmd::View { run_dir } => agent_host::viewer::write(&run_dir).map(|p| {
             println!("{}", p.display());
             0

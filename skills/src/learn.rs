@@ -58,6 +58,9 @@ pub struct LearnReport {
     pub pairs: Vec<(u32, u32)>,
     pub skipped: Vec<(u32, String)>,
     pub exchange: Option<Exchange>,
+    /// What answered the extraction: `live`, `scripted` (recorded answers written by us) or
+    /// `replayed` (a cassette).
+    pub llm_source: String,
     /// Why the model's answer was dropped as a whole, if it was.
     pub answer_dropped: Option<String>,
     pub merge: MergeReport,
@@ -65,9 +68,82 @@ pub struct LearnReport {
     pub retired: Vec<String>,
 }
 
-/// The default library: robot-skill/skills of this checkout.
+/// The default library: runs/skill-library of this checkout (outside robot-skill/, which the
+/// sandbox can read: a program sees only the skills selection gives it).
 pub fn default_library() -> PathBuf {
-    session::root().join("robot-skill/skills")
+    session::root().join("runs/skill-library")
+}
+
+/// The extraction endpoint when none is given: the episode's own, except that a scripted
+/// episode's extraction is answered by the gym's recorded extraction answers.
+pub fn extraction_llm(episode_llm: &str) -> String {
+    if episode_llm == "scripted" || episode_llm.starts_with("scripted:") {
+        "scripted".into()
+    } else {
+        episode_llm.to_string()
+    }
+}
+
+/// After an episode that was given skills, and judged: each chosen skill gets the verdict as
+/// evidence of use (a new version), then housekeeping retires what keeps failing.
+pub fn record_use(library: &Path, run_dir: &Path, o: &LearnOpts) -> anyhow::Result<Vec<(String, u32)>> {
+    let read =
+        |name: &str| -> Option<Value> { serde_json::from_str(&std::fs::read_to_string(run_dir.join(name)).ok()?).ok() };
+    let (Some(sel), Some(result)) = (read("skills.json"), read("result.json")) else { return Ok(Vec::new()) };
+    let Some(success) = result["success"].as_bool() else { return Ok(Vec::new()) };
+    let config = read("config.json").unwrap_or(Value::Null);
+    let folder = run_dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let episode = match config["instance"].as_str() {
+        Some(i) => format!("{folder}@{i}"),
+        None => folder,
+    };
+    let mut written = Vec::new();
+    for id in sel["chosen"].as_array().map(Vec::as_slice).unwrap_or_default().iter().filter_map(Value::as_str) {
+        // Episodes of a batch on workers may add use to the same skill at once: a version
+        // another wrote first is read again and the next one written.
+        for attempt in 0..5 {
+            let mut lib = Library::open(library)?;
+            let Some(s) = lib.get(id).cloned() else { break };
+            if s.evidence.iter().any(|e| e.episode == episode) {
+                break;
+            }
+            let mut n = s.clone();
+            n.version += 1;
+            let ev = crate::format::Evidence {
+                id: format!("{episode}#0"),
+                episode: episode.clone(),
+                round: 0,
+                outcome: if success { crate::format::Outcome::Success } else { crate::format::Outcome::Failure },
+                source: crate::format::Source::Use,
+                seed: config["seed"].as_u64().unwrap_or(0),
+                record: Some(run_dir.display().to_string()),
+                note: format!(
+                    "given to an episode ({}), natively judged",
+                    result["llm_source"].as_str().unwrap_or("?")
+                ),
+            };
+            n.history.push(crate::format::Change {
+                version: n.version,
+                op: "use".into(),
+                reason: ev.note.clone(),
+                evidence: vec![ev.id.clone()],
+            });
+            n.evidence.push(ev);
+            let v = n.version;
+            match lib.write(n) {
+                Ok(()) => {
+                    lib.log("used", json!({"skill": id, "episode": episode, "success": success}))?;
+                    written.push((id.to_string(), v));
+                    break;
+                }
+                Err(e) if attempt == 4 => return Err(e),
+                Err(_) => std::thread::sleep(std::time::Duration::from_millis(50 * (attempt + 1))),
+            }
+        }
+    }
+    let mut lib = Library::open(library)?;
+    merge::housekeeping(&mut lib, o.retire_below, o.retire_min_runs, o.cap)?;
+    Ok(written)
 }
 
 /// `r2g skills extract`.
@@ -80,7 +156,8 @@ pub fn learn(run: &Path, o: &LearnOpts) -> anyhow::Result<LearnReport> {
     let script = root.join("agent-host/scripted").join(format!("{}-extract.json", f.record.gym));
     let llm_dir = f.record.dir.join("extraction-llm");
     std::fs::create_dir_all(&llm_dir)?;
-    let (endpoint, _guard, _) = session::endpoint(&o.llm, &o.provider, &f.record.gym, Some(&script), &llm_dir)?;
+    let (endpoint, _guard, llm_source) =
+        session::endpoint(&o.llm, &o.provider, &f.record.gym, Some(&script), &llm_dir)?;
     let exchange = extract::ask(&endpoint, &prompt)?;
     let rc = o.robot_config.clone().unwrap_or_else(runtime::launch::default_robot_config);
     let ctx = Context {
@@ -115,6 +192,7 @@ pub fn learn(run: &Path, o: &LearnOpts) -> anyhow::Result<LearnReport> {
         pairs: f.pairs,
         skipped: f.skipped,
         exchange: Some(exchange),
+        llm_source: llm_source.into(),
         answer_dropped,
         merge,
         admissions,
@@ -145,33 +223,21 @@ pub fn with_skills(o: &EpisodeOpts, library: &Path) -> anyhow::Result<EpisodeOpt
     })
 }
 
-/// The `r2g batch` arguments that run the protocol on one seed into `out` with its own library
-/// (one job of the protocol on a fleet).
-fn seed_job(o: &EpisodeOpts, seed: u64, learn_opts: &LearnOpts, out: &Path) -> Vec<String> {
+/// The `r2g batch` arguments that run the protocol on one seed into `out` (one job of the
+/// protocol on a fleet): the episode's own flags, then the protocol's.
+fn seed_job(o: &EpisodeOpts, seed: u64, learn_opts: &LearnOpts, out: &Path, library: &Path) -> Vec<String> {
+    let e = EpisodeOpts { seed, library: None, ..o.clone() };
     let mut a = vec![
         "batch".to_string(),
-        o.gym.clone(),
+        session::gym_arg(&o.gym),
         "--episodes".into(),
         "1".into(),
-        "--skills-protocol".into(),
+        "--skills".into(),
         "learn".into(),
     ];
-    a.extend([
-        "--llm".into(),
-        o.llm.clone(),
-        "--provider".into(),
-        o.provider.clone(),
-        "--learn-llm".into(),
-        learn_opts.llm.clone(),
-    ]);
-    a.extend([
-        "--max-decisions".into(),
-        o.max_decisions.to_string(),
-        "--control-steps".into(),
-        o.control_steps.to_string(),
-    ]);
-    a.extend(["--seed".into(), seed.to_string(), "--out".into(), out.display().to_string()]);
-    a.extend(["--library".into(), out.join("library").display().to_string()]);
+    a.extend(session::episode_flags(&e));
+    a.extend(["--out".into(), out.display().to_string(), "--library".into(), library.display().to_string()]);
+    a.extend(["--learn-llm".into(), learn_opts.llm.clone(), "--seed".into(), seed.to_string()]);
     match &learn_opts.admit {
         Some(ad) => {
             a.extend(["--admit-runs".into(), ad.seeds.len().to_string(), "--admit-share".into(), ad.share.to_string()]);
@@ -181,19 +247,32 @@ fn seed_job(o: &EpisodeOpts, seed: u64, learn_opts: &LearnOpts, out: &Path) -> V
         }
         None => a.extend(["--admit-runs".into(), "0".into()]),
     }
-    if let Some(p) = &o.perturb {
-        a.extend(["--perturb".into(), p.clone()]);
-    }
-    if let Some(rc) = &o.robot_config {
-        a.extend(["--robot-config".into(), rc.display().to_string()]);
-    }
     a
 }
 
-/// `r2g batch --skills-protocol learn`: per seed, an episode without skills → extraction → an
-/// episode with the selected skills; per-arm figures with seeds paired. On a fleet (`backend`),
-/// each seed is one job learning into its own library (the paper's protocol: the second
-/// execution uses what the first taught), the rows streamed into the same summary.
+/// Copies the skill versions of `from` (if any) into a fresh `to`: the library a seed starts with.
+fn seed_library(from: &Path, to: &Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(to)?;
+    let Ok(rd) = std::fs::read_dir(from) else { return Ok(()) };
+    for d in rd.flatten().filter(|e| e.file_type().is_ok_and(|t| t.is_dir())) {
+        let dst = to.join(d.file_name());
+        std::fs::create_dir_all(&dst)?;
+        for f in std::fs::read_dir(d.path())?.flatten() {
+            std::fs::copy(f.path(), dst.join(f.file_name()))?;
+        }
+    }
+    Ok(())
+}
+
+fn source_of(v: &Value) -> &str {
+    v["llm_source"].as_str().unwrap_or("?")
+}
+
+/// `r2g batch --skills learn`: per seed, an episode without skills → extraction → an episode on
+/// the same seed given the selected skills, as in the paper (the second execution of a task
+/// uses what its first taught). Each seed learns into its own library `<out>/seed-NNN/library`,
+/// which starts as a copy of `learn_opts.library`, locally and on a fleet alike (`backend`: one
+/// job per seed). Per-arm figures over the episodes that ran; seeds paired.
 pub fn protocol(
     o: &EpisodeOpts,
     episodes: u32,
@@ -208,24 +287,24 @@ pub fn protocol(
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     let dir = session::run_folder(o.out.as_deref(), "batches", &format!("{gym}-skills"))?;
-    let scripted = o.llm == "scripted";
     let second_llm = {
         let s = root.join("agent-host/scripted").join(format!("{gym}-skills.json"));
-        if scripted && s.is_file() {
+        if o.llm == "scripted" && s.is_file() {
             format!("scripted:{}", s.display())
         } else {
             o.llm.clone()
         }
     };
-    let mut rows = Vec::new();
     let seed_of = |i: u32| o.seed + u64::from(i) + u64::from(o.seed == 0 && o.perturb.is_some());
+    let mut rows = Vec::new();
     if let Some(b) = backend {
-        let jobs: Vec<fleet::Job> = (0..episodes)
-            .map(|i| fleet::Job {
-                id: i as usize,
-                args: seed_job(o, seed_of(i), learn_opts, &dir.join(format!("seed-{i:03}"))),
-            })
-            .collect();
+        let mut jobs = Vec::new();
+        for i in 0..episodes {
+            let out = dir.join(format!("seed-{i:03}"));
+            let lib = out.join("library");
+            seed_library(&learn_opts.library, &lib)?;
+            jobs.push(fleet::Job { id: i as usize, args: seed_job(o, seed_of(i), learn_opts, &out.join("run"), &lib) });
+        }
         let mut got: Vec<(u64, Value)> = Vec::new();
         fleet::run(&jobs, b, &dir, |r| {
             let i = r["id"].as_u64().unwrap_or(0);
@@ -247,47 +326,84 @@ pub fn protocol(
     }
     for i in 0..if backend.is_some() { 0 } else { episodes } {
         let seed = seed_of(i);
-        let first =
-            EpisodeOpts { out: Some(dir.join(format!("episode-{i:03}-without"))), seed, skills: None, ..o.clone() };
+        let seed_dir = dir.join(format!("seed-{i:03}"));
+        let library = seed_dir.join("library");
+        seed_library(&learn_opts.library, &library)?;
+        let lo = LearnOpts { library: library.clone(), ..learn_opts.clone() };
+        let first = EpisodeOpts {
+            out: Some(seed_dir.join(format!("episode-{i:03}-without"))),
+            seed,
+            skills: None,
+            library: None,
+            ..o.clone()
+        };
         let a = session::episode(&first).map(|r| serde_json::to_value(&r).unwrap_or(Value::Null));
         on_episode("without skills", i, &a);
         let learned = match &a {
-            Ok(r) => learn(Path::new(r["run_dir"].as_str().unwrap_or_default()), learn_opts).map(|l| {
-                json!({"written": l.merge.written, "dropped": l.merge.dropped.len(), "admissions": l.admissions.iter().map(|x| json!({"skill": x.skill, "validated": x.validated, "reason": x.reason})).collect::<Vec<_>>()})
+            Ok(r) => learn(Path::new(r["run_dir"].as_str().unwrap_or_default()), &lo).map(|l| {
+                json!({"written": l.merge.written, "dropped": l.merge.dropped.len(), "llm_source": l.llm_source,
+                       "tokens_in": l.exchange.as_ref().map_or(0, |e| e.tokens_in), "tokens_out": l.exchange.as_ref().map_or(0, |e| e.tokens_out),
+                       "admissions": l.admissions.iter().map(|x| json!({"skill": x.skill, "validated": x.validated, "reason": x.reason})).collect::<Vec<_>>()})
             }),
             Err(e) => Err(anyhow::anyhow!("no first episode: {e:#}")),
         };
         let second = with_skills(
             &EpisodeOpts {
-                out: Some(dir.join(format!("episode-{i:03}-with"))),
+                out: Some(seed_dir.join(format!("episode-{i:03}-with"))),
                 seed,
                 llm: second_llm.clone(),
                 ..o.clone()
             },
-            &learn_opts.library,
+            &library,
         )?;
         let b = session::episode(&second).map(|r| serde_json::to_value(&r).unwrap_or(Value::Null));
+        if let Ok(r) = &b {
+            record_use(&library, Path::new(r["run_dir"].as_str().unwrap_or_default()), &lo)?;
+        }
         on_episode("with skills", i, &b);
         let row = |r: &anyhow::Result<Value>| match r {
             Ok(v) => v.clone(),
             Err(e) => json!({"error": format!("{e:#}"), "success": false}),
         };
-        rows.push(json!({"seed": seed, "without": row(&a), "learned": learned.unwrap_or_else(|e| json!({"error": format!("{e:#}")})), "with": row(&b)}));
+        rows.push(json!({"seed": seed, "library": library, "without": row(&a), "learned": learned.unwrap_or_else(|e| json!({"error": format!("{e:#}")})), "with": row(&b)}));
     }
+    // Means over the episodes that ran (an error is counted apart, never as zero tokens).
     let arm = |k: &str| {
-        let n = rows.len().max(1) as f64;
-        let f = |m: &str| rows.iter().map(|r| r[k][m].as_f64().unwrap_or(0.0)).sum::<f64>() / n;
+        let ran: Vec<&Value> =
+            rows.iter().map(|r| &r[k]).filter(|v| v.get("error").is_none() && v.is_object()).collect();
+        let n = ran.len().max(1) as f64;
+        let f = |m: &str| ran.iter().map(|r| r[m].as_f64().unwrap_or(0.0)).sum::<f64>() / n;
         json!({
-            "success_rate": rows.iter().filter(|r| r[k]["success"] == true).count() as f64 / n,
+            "ran": ran.len(), "errors": rows.len() - ran.len(),
+            "success_rate": ran.iter().filter(|r| r["success"] == true).count() as f64 / n,
             "responses_mean": f("responses"), "tokens_in_mean": f("tokens_in"), "tokens_out_mean": f("tokens_out"),
             "wall_s_mean": f("wall_s"), "model_s_mean": f("model_s"), "exec_s_mean": f("exec_s"),
+            "llm_sources": ran.iter().map(|r| source_of(r)).collect::<std::collections::BTreeSet<_>>(),
         })
     };
+    let learned: Vec<&Value> = rows.iter().map(|r| &r["learned"]).filter(|l| l.get("error").is_none()).collect();
+    let ln = learned.len().max(1) as f64;
+    let (without, with) = (arm("without"), arm("with"));
+    let sources: std::collections::BTreeSet<String> = without["llm_sources"]
+        .as_array()
+        .into_iter()
+        .chain(with["llm_sources"].as_array())
+        .flatten()
+        .chain(learned.iter().map(|l| &l["llm_source"]))
+        .filter_map(|v| v.as_str().map(str::to_string))
+        .collect();
+    let label = if sources.iter().all(|s| s == "live") {
+        "a live model in every episode and extraction".to_string()
+    } else if sources.iter().all(|s| s == "scripted") {
+        "mechanics only: the scripted endpoint replays recorded conversations and extraction answers (synthetic, written by us), not a model".to_string()
+    } else {
+        format!("mixed sources ({}): not a model's figures", sources.into_iter().collect::<Vec<_>>().join(", "))
+    };
     let summary = json!({
-        "gym": gym, "episodes": rows.len(),
-        "library": if backend.is_some() { json!(dir.join("seed-NNN/library")) } else { json!(learn_opts.library) },
-        "label": if scripted { "mechanics only: the scripted endpoint replays recorded conversations (synthetic, written by us), not a model" } else { "model" },
-        "without_skills": arm("without"), "with_skills": arm("with"),
+        "gym": gym, "episodes": rows.len(), "library": dir.join("seed-NNN/library"), "label": label,
+        "without_skills": without, "with_skills": with,
+        "extraction": {"ran": learned.len(), "tokens_in_mean": learned.iter().map(|l| l["tokens_in"].as_f64().unwrap_or(0.0)).sum::<f64>() / ln,
+                       "tokens_out_mean": learned.iter().map(|l| l["tokens_out"].as_f64().unwrap_or(0.0)).sum::<f64>() / ln},
         "per_seed": rows, "run_dir": dir,
     });
     let tmp = dir.join("batch.json.partial");

@@ -368,11 +368,30 @@ fn apply_one(
                     evidence: all_evidence.iter().map(|e| e.id.clone()).collect(),
                 }],
             };
+            if let Some(p) = &parent {
+                if s.applicability.context.is_empty() || s.applicability.context == p.applicability.context {
+                    return Err(
+                        "a split names a context (object_classes or instruction) other than its parent's".into()
+                    );
+                }
+                if let Some(k) =
+                    s.applicability.context.keys().find(|k| !["object_classes", "instruction"].contains(&k.as_str()))
+                {
+                    return Err(format!(
+                        "a split's context key '{k}' cannot be checked by selection (object_classes, instruction)"
+                    ));
+                }
+            }
             let new_id = s.id.clone();
+            let context = s.applicability.context.clone();
             let out = write(lib, s)?;
             if let Some(p) = parent {
-                let n =
+                // The parent keeps everything but the context split off.
+                let mut n =
                     next_version(&p, "split", format!("the context {} now belongs to {new_id}", op["context"]), &[]);
+                for (k, v) in context {
+                    n.applicability.context.insert(format!("not_{k}"), v);
+                }
                 write(lib, n)?;
             }
             Ok(out)
@@ -390,10 +409,19 @@ fn apply_one(
             if holds_all(&s, &all_evidence) {
                 return Ok(None);
             }
+            // A revision answers a contradiction: something in this record went wrong.
+            if !all_evidence.iter().any(|e| matches!(e.outcome, Outcome::Negative | Outcome::Failure)) {
+                return Err("a revise cites no failed round (use support for confirmation)".into());
+            }
             let reason = op["reason"].as_str().unwrap_or("contradicted").to_string();
             let mut n = next_version(&s, "revise", reason, &all_evidence);
-            if let Ok(built) = build(f, &rounds, &op["stages"]) {
-                replace_stages(&mut n, built);
+            match build(f, &rounds, &op["stages"]) {
+                Ok(built) => replace_stages(&mut n, built),
+                // Recovery guidance alone is a revision too; its stages stay.
+                Err(why) if !recovery.is_empty() => {
+                    n.history.last_mut().map(|h| h.reason.push_str(&format!(" (stages unchanged: {why})")));
+                }
+                Err(why) => return Err(format!("a revise that changes nothing: {why}, and no recovery given")),
             }
             n.recovery.extend(recovery);
             add_evidence(&mut n, &all_evidence);

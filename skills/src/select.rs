@@ -149,6 +149,34 @@ pub const HOW_TO_USE: &str = "These skills were learned in earlier episodes. The
 then `SKILL RESULT {...}`); or one rule: `r = robo_skills.SkillRunner(skill); scene, state = r.observe(); \
 pose = r.target(\"<rule id>\", scene, state)`. Verify effects yourself as always.";
 
+/// Whether a skill's context (after a split) fits this episode; the reason when it does not.
+/// Keys: `object_classes` (comma-separated classes that must all be seen), `instruction`
+/// (words that must all be in the instruction), each with a `not_` form (must not all hold:
+/// the part a split gave to another skill). Any other key cannot be checked: not selected.
+pub fn context_mismatch(
+    context: &std::collections::BTreeMap<String, String>,
+    instruction: &str,
+    classes: &[String],
+) -> Option<String> {
+    let words = tokens(instruction);
+    for (key, value) in context {
+        let (negated, k) = match key.strip_prefix("not_") {
+            Some(k) => (true, k),
+            None => (false, key.as_str()),
+        };
+        let items: Vec<String> = value.split(',').map(|v| v.trim().to_lowercase()).filter(|v| !v.is_empty()).collect();
+        let holds = match k {
+            "object_classes" => items.iter().all(|c| classes.iter().any(|x| x == c)),
+            "instruction" => items.iter().all(|w| words.contains(w)),
+            other => return Some(format!("its context names '{other}', which selection cannot check")),
+        };
+        if holds == negated {
+            return Some(format!("its context {key} = {value} does not fit this episode"));
+        }
+    }
+    None
+}
+
 /// Steps 1-3.
 pub fn select(
     lib: &Library,
@@ -172,7 +200,7 @@ pub fn select(
         } else if let Some(missing) = s.applicability.object_classes.iter().find(|c| !classes.contains(c)) {
             Some(format!("needs a {missing}, which perception does not see"))
         } else {
-            None
+            context_mismatch(&s.applicability.context, instruction, classes)
         };
         match why {
             Some(w) => excluded.push((s.id.clone(), w)),

@@ -201,7 +201,7 @@ fn support_revise_split_and_retire_keep_every_piece_of_evidence() {
       {"op": "revise", "skill": "pick-place-on-plate", "reason": "the lift was refused as recorded; lift in smaller steps",
        "evidence": ["E3", "E4"], "stages": {"E4": "lift"},
        "recovery": [{"when": "the lift is refused", "action": "lift 2 cm first", "evidence": ["E3"]}]},
-      {"op": "split", "skill": "pick-place-on-plate", "id": "pick-place-tall", "context": {"object_height": "over 8 cm"},
+      {"op": "split", "skill": "pick-place-on-plate", "id": "pick-place-tall", "context": {"object_classes": "cylinder"},
        "reason": "tall objects need a higher carry", "evidence": ["E2", "E5"], "stages": {"E2": "grasp", "E5": "place"}},
       {"op": "retire", "skill": "pick-place-tall", "reason": "superseded in this test", "evidence": ["E5"]}
     ]}"#;

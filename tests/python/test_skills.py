@@ -2,7 +2,7 @@
 real processes — a scripted episode (SYNTHETIC: a recorded conversation written by us), skill
 extraction with recorded extraction answers (SYNTHETIC as well), admission by model-free runs
 on held-out perturbed seeds, `r2g skills run`, selection into a later episode, and the
-`--skills-protocol learn` batch. Figures from these runs are mechanics only: no model took part."""
+`--skills learn` batch. Figures from these runs are mechanics only: no model took part."""
 from __future__ import annotations
 
 import json
@@ -159,13 +159,14 @@ def learned(tmp_path_factory: pytest.TempPathFactory) -> dict:
     extraction from it into a fresh library (admitted by two model-free runs on held-out seeds
     with the objects moved up to 3 cm), then a second scripted episode given the skill."""
     tmp = tmp_path_factory.mktemp("skills")
-    lib = tmp / "library"
-    rc, out, err = r2g("batch", "pick_block_plate", "--episodes", "1", "--skills-protocol", "learn", "--admit-runs", "2",
-                       "--library", str(lib), "--out", str(tmp / "batch"))
+    start = tmp / "library"  # empty: each seed learns into its own copy, <out>/seed-NNN/library
+    rc, out, err = r2g("batch", "pick_block_plate", "--episodes", "1", "--skills", "learn", "--admit-runs", "2",
+                       "--library", str(start), "--out", str(tmp / "batch"))
     assert rc == 0, err[-3000:]
     batch = last_json(out)
-    return {"tmp": tmp, "lib": lib, "batch": batch, "episode": tmp / "batch" / "episode-000-without",
-            "with": tmp / "batch" / "episode-000-with", "stderr": err}
+    seed = tmp / "batch" / "seed-000"
+    return {"tmp": tmp, "lib": seed / "library", "batch": batch, "episode": seed / "episode-000-without",
+            "with": seed / "episode-000-with", "stderr": err}
 
 
 def test_extraction_labels_rounds_and_writes_an_admitted_skill(learned: dict) -> None:
@@ -177,17 +178,21 @@ def test_extraction_labels_rounds_and_writes_an_admitted_skill(learned: dict) ->
     adm = report["admissions"][0]
     assert adm["validated"], adm
     versions = sorted((learned["lib"] / "pick-place-on-plate").glob("v*.json"))
-    assert [v.name for v in versions] == ["v0001.json", "v0002.json"]
+    # v1 added, v2 admitted, v3 the use: the second episode was given it and judged natively.
+    assert [v.name for v in versions] == ["v0001.json", "v0002.json", "v0003.json"]
     skill = json.loads(versions[-1].read_text())
     assert skill["status"] == "validated"
     runs = [e for e in skill["evidence"] if e["source"] == "validation"]
     assert len(runs) == 2 and all(e["seed"] != 0 for e in runs)
+    used = [e for e in skill["evidence"] if e["source"] == "use"]
+    assert [(u["outcome"], u["seed"]) for u in used] == [("success", 0)], used
+    assert skill["history"][-1]["op"] == "use"
     # No rule holds a base-frame position: each is relative to one of the skill's objects.
     for rule in skill["rules"]:
         assert rule["anchor"]["object"] in skill["objects"]
         assert np.linalg.norm(rule["offset_m"]) < 0.4
     rc, out, err = r2g("skills", "list", "--library", str(learned["lib"]))
-    assert rc == 0 and out.startswith("pick-place-on-plate v2 Validated 2/2"), out
+    assert rc == 0 and out.startswith("pick-place-on-plate v3 Validated 3/3"), out
 
 
 def test_the_protocol_reports_both_arms_with_paired_seeds(learned: dict) -> None:
