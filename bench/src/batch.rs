@@ -24,10 +24,14 @@ impl RayHead {
             l.local_addr()?.port()
         };
         let mut cmd = Command::new(root.join(".venv/bin/ray"));
-        cmd.args(["start", "--head", &format!("--port={port}"), &format!("--num-cpus={slots}")])
+        cmd.args(["start", "--head", "--node-ip-address=127.0.0.1", &format!("--port={port}")])
+            .arg(format!("--num-cpus={slots}"))
             .arg(format!("--resources={{\"r2g_gym\": {slots}}}"))
             .args(["--include-dashboard=false", "--block"])
             .env("RAY_USAGE_STATS_ENABLED", "0")
+            // Ray on Linux turns 127.0.0.1 into the machine's address unless multi-node clusters
+            // are off: this head stays on loopback.
+            .env("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
             .stdout(Stdio::null())
             .stderr(Stdio::null());
         // SAFETY: setsid in the child before exec: the head and its daemons form our session.

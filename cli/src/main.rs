@@ -960,6 +960,9 @@ fn import(which: ImportCmd) -> anyhow::Result<i32> {
 /// a Ray task, its evidence.json read back.
 fn fleet_validator(backend: fleet::Backend) -> real2sim::augment::Validator {
     std::sync::Arc::new(move |dir: &std::path::Path| {
+        // Absolute: the job runs wherever a worker is, in whatever directory it has.
+        let dir =
+            &std::path::absolute(dir).map_err(|source| real2sim::Error::Io { path: dir.to_path_buf(), source })?;
         let args = vec!["validate".to_string(), dir.display().to_string(), "--out".into(), dir.display().to_string()];
         let mut failure = None;
         fleet::run(&[fleet::Job { id: 0, args }], &backend, dir, |r| {

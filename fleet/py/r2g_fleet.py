@@ -5,12 +5,13 @@ JSON line on stdout, in the order they finish.
     python fleet/py/r2g_fleet.py run --jobs JOBS.json (--local N | --ray auto|ADDRESS) [--retries 2]
     python fleet/py/r2g_fleet.py resources        # this node's r2g_gym capacity, for `ray start`
 
-Every job runs the same way wherever it runs (`run_job`): `r2g` in a session and process group
-of its own, dying with the worker (PR_SET_PDEATHSIG), on an iceoryx2 configuration of its own
-(its own root path and /dev/shm prefix). Cleanup never relies on `finally` alone: a worker that
-is SIGKILLed takes its job's processes with it (PDEATHSIG), and the next job on that node sweeps
-what any dead job left (`sweep`): it kills a group whose worker is gone and removes the
-job's shared-memory files by their prefix. Ray retries the task of a dead worker.
+Every job runs the same way wherever it runs (`run_job`): `r2g` in a session of its own, dying
+with the worker (PR_SET_PDEATHSIG), on an iceoryx2 configuration of its own (its own root path
+and /dev/shm prefix, both named by the job's tag). Cleanup never relies on `finally` alone: a
+worker that is SIGKILLed takes its job's processes with it (PDEATHSIG), and the next job on that
+node sweeps what any dead job left (`sweep`): it ends the session of a job whose worker is gone,
+once a process of that session proves it is the job's (its environment names the job's tag),
+and removes the job's shared-memory files and folders. Ray retries the task of a dead worker.
 """
 
 from __future__ import annotations
@@ -19,11 +20,15 @@ import argparse
 import ctypes
 import json
 import os
+import re
 import shutil
 import signal
 import socket
+import stat
 import subprocess
 import sys
+import tempfile
+import threading
 import time
 import uuid
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
@@ -38,9 +43,22 @@ SHM_PER_GYM_MB = float(os.environ.get("R2G_SHM_PER_GYM_MB", "512"))
 
 def jobs_root() -> Path:
     """Where each running job keeps its iceoryx2 configuration and the facts its sweep needs:
-    ``$R2G_FLEET_DIR`` of the node it runs on (read there, not in the driver), else /tmp/r2g-fleet."""
-    return Path(os.environ.get("R2G_FLEET_DIR", "/tmp/r2g-fleet"))
+    ``$R2G_FLEET_DIR`` of the node it runs on (read there, not in the driver), else
+    /tmp/r2g-fleet-<uid>: one folder per user, only ever read by that user's sweeps."""
+    root = Path(os.environ.get("R2G_FLEET_DIR") or f"/tmp/r2g-fleet-{os.getuid()}")
+    try:
+        root.mkdir(mode=0o700, parents=True)
+    except FileExistsError:
+        pass
+    st = root.lstat()
+    if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid():
+        raise SystemExit(f"{root} is not a folder of this user (uid {os.getuid()}): set R2G_FLEET_DIR to one")
+    return root
+
+
 PR_SET_PDEATHSIG = 1
+_TAG = re.compile(r"^r2gj[0-9a-f]{10}$")
+"""A job's tag (its folder, iceoryx2 root and /dev/shm prefix); nothing else is ever swept."""
 
 
 def node_capacity() -> int:
@@ -51,100 +69,178 @@ def node_capacity() -> int:
     return max(1, min(cores, int(free_mb // SHM_PER_GYM_MB)))
 
 
-def _alive(pid: int) -> bool:
+def _boot_id() -> str:
+    return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+
+
+def _stat(pid: int) -> tuple[int, int] | None:
+    """(session id, start time in clock ticks since boot) of a process, None when it is gone
+    (or a zombie: nothing left to end)."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    if fields[0] in ("Z", "X"):
+        return None
+    return int(fields[3]), int(fields[19])
 
 
-def _group_alive(pgid: int) -> bool:
+def _same_process(pid: int, start: int) -> bool:
+    """Whether `pid` is still the process that had start time `start` (not a reused pid)."""
+    s = _stat(pid)
+    return s is not None and s[1] == start
+
+
+def _environ_has(pid: int, marker: bytes) -> bool | None:
+    """Whether the process's environment holds `marker`; None when it cannot be read (another
+    user's process, or one that made itself undumpable, as the sandbox does)."""
     try:
-        os.killpg(pgid, 0)
-    except ProcessLookupError:
-        return False
+        return marker in Path(f"/proc/{pid}/environ").read_bytes()
     except PermissionError:
-        return True
-    return True
+        return None
+    except OSError:
+        return False
 
 
-def _kill_group(pgid: int) -> None:
-    """SIGTERM to the job's group (r2g stops its instance in order), SIGKILL after 10 s."""
+def _members(sid: int, since: int) -> list[int]:
+    """The processes of session `sid` started at or after `since` (clock ticks since boot)."""
+    out = []
+    for entry in os.scandir("/proc"):
+        if entry.name.isdigit():
+            s = _stat(int(entry.name))
+            if s is not None and s[0] == sid and s[1] >= since:
+                out.append(int(entry.name))
+    return out
+
+
+def _kill_session(sid: int, since: int, tag: str) -> list[int]:
+    """Ends what is left of a job: the processes of session `sid` (its leader's, started at
+    `since`), SIGTERM first (r2g stops its instance in order), SIGKILL after 10 s. Only when a
+    member proves the session is the job's: its environment names the job's tag (every process
+    of a job inherits R2G_IPC_CONFIG, the sandbox R2G_IPC_ROOT, both under the tag). A session
+    number is not given out again while any member lives, so members that cannot be read (the
+    sandbox) go with the proven ones. Returns the pids signalled."""
+    marker = tag.encode()
+    signalled: list[int] = []
     for sig, wait_s in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 5.0)):
-        try:
-            os.killpg(pgid, sig)
-        except ProcessLookupError:
-            return
+        members = _members(sid, since)
+        marks = [_environ_has(p, marker) for p in members]
+        if not any(marks):
+            return signalled
+        for pid, mark in zip(members, marks):
+            if mark is False:
+                continue
+            try:
+                os.kill(pid, sig)
+                signalled.append(pid)
+            except (ProcessLookupError, PermissionError):
+                pass
+        targets = {p for p, m in zip(members, marks) if m is not False}
         deadline = time.monotonic() + wait_s
-        while time.monotonic() < deadline:
-            if not _group_alive(pgid):
-                return
+        while time.monotonic() < deadline and targets & set(_members(sid, since)):
             time.sleep(0.05)
+    return signalled
 
 
-def _remove_job(d: Path) -> None:
-    facts = json.loads((d / "job.json").read_text()) if (d / "job.json").is_file() else {}
-    prefix = facts.get("prefix")
-    if prefix:
-        for f in Path("/dev/shm").glob(f"{prefix}*"):
-            f.unlink(missing_ok=True)
-    if facts.get("ipc_root"):
-        shutil.rmtree(facts["ipc_root"], ignore_errors=True)
+def _write_facts(d: Path, facts: dict[str, Any]) -> None:
+    tmp = d / f".job.json.{os.getpid()}.{threading.get_ident()}"
+    tmp.write_text(json.dumps(facts))
+    os.replace(tmp, d / "job.json")
+
+
+def _remove_files(d: Path, tag: str) -> None:
+    """A job's shared memory (its /dev/shm prefix), iceoryx2 root and folder `d`."""
+    for f in Path("/dev/shm").glob(f"{tag}_*"):
+        f.unlink(missing_ok=True)
+    shutil.rmtree(Path("/tmp") / tag, ignore_errors=True)
     shutil.rmtree(d, ignore_errors=True)
 
 
+def _worker_alive(facts: dict[str, Any], boot: str) -> bool:
+    return facts.get("boot_id") == boot and _same_process(int(facts["worker"]), int(facts["worker_start"]))
+
+
 def sweep() -> list[str]:
-    """Cleans up after dead jobs of this node: a job whose worker is gone has its process group
-    killed (if anything of it survived) and its shared memory and folder removed. Returns the
-    jobs swept."""
+    """Cleans up after dead jobs of this node: a job whose worker is gone (gone from /proc, or
+    its pid now names a younger process) has what is left of its session ended (see
+    `_kill_session`) and its shared memory and folders removed. A folder is claimed by renaming
+    it before anything else, so sweeps running side by side never handle the same job twice.
+    Returns the jobs swept."""
     swept: list[str] = []
     root = jobs_root()
-    if not root.is_dir():
-        return swept
-    for d in root.iterdir():
+    boot = _boot_id()
+    for d in sorted(root.iterdir()):
+        tag, _, claimer = d.name.partition(".claimed-")
+        if not _TAG.match(tag):
+            continue
+        if claimer:
+            # Claimed by a sweep that died before it finished: claimed again below.
+            pid, _, start = claimer.partition("-")
+            start = start.partition("-")[0]  # the claimer: pid-start-thread
+            if pid.isdigit() and start.isdigit() and _same_process(int(pid), int(start)):
+                continue
         try:
             facts = json.loads((d / "job.json").read_text())
-        except (OSError, ValueError):
+            alive = _worker_alive(facts, boot)
+        except FileNotFoundError:
+            # A job still writing its first facts, or a folder another sweep just claimed.
             continue
-        if _alive(int(facts["worker"])):
+        except (OSError, ValueError, KeyError, TypeError):
+            facts, alive = {}, False
+        if alive:
             continue
-        pgid = int(facts.get("pgid") or 0)
-        if pgid and _group_alive(pgid):
-            _kill_group(pgid)
-        _remove_job(d)
-        swept.append(d.name)
+        me = _stat(os.getpid())
+        mine = root / f"{tag}.claimed-{os.getpid()}-{me[1] if me else 0}-{threading.get_ident()}"
+        try:
+            d.rename(mine)
+        except OSError:
+            continue
+        leader = int(facts.get("leader") or 0)
+        if leader and facts.get("boot_id") == boot:
+            s = _stat(leader)
+            if s is None or s[1] == int(facts.get("leader_start", -1)):
+                # The leader is gone or still the job's own (not a reused pid): its session.
+                _kill_session(leader, int(facts.get("leader_start", 0)), tag)
+        _remove_files(mine, tag)
+        swept.append(tag)
     return swept
 
 
-def _die_with_worker() -> None:
-    # In the child before exec: its own session (so Ray's cleanup of the worker does not reach
-    # it and we kill it as one group), and SIGKILL when the worker dies, however it dies.
-    os.setsid()
+def _die_with_worker() -> Callable[[], None]:
+    """What the child runs before exec (its session is new: start_new_session): SIGKILL when
+    the worker dies, however it dies. libc is loaded here, in the worker (a module-level handle
+    would travel with the pickled function to Ray, and cannot), so the child loads nothing."""
     libc = ctypes.CDLL(None, use_errno=True)
-    libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    return lambda: libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
 
 
 def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
-    """Runs one job here: `r2g <job["args"]>`, isolated as the module docstring says. Returns
-    its result: the exit status, its last JSON line, the tail of its stderr, where it ran."""
+    """Runs one job here: `r2g <job["args"]>`, isolated as the module docstring says, in the
+    driver's working directory when this node has it. Returns its result: the exit status, its
+    last JSON line, the tail of its stderr, where it ran."""
     sweep()
     tag = f"r2gj{uuid.uuid4().hex[:10]}"
     d = jobs_root() / tag
-    d.mkdir(parents=True)
+    d.mkdir(mode=0o700)
     # A short root path: iceoryx2's event sockets live under it, and socket paths are short.
     ipc_root = Path("/tmp") / tag
-    ipc_root.mkdir()
-    prefix = f"{tag}_"
+    ipc_root.mkdir(mode=0o700)
     config = d / "iceoryx2.toml"
-    config.write_text(f'[global]\nroot-path = "{ipc_root}/"\nprefix = "{prefix}"\n')
-    facts: dict[str, Any] = {"worker": os.getpid(), "prefix": prefix, "pgid": 0, "ipc_root": str(ipc_root)}
-    (d / "job.json").write_text(json.dumps(facts))
+    config.write_text(f'[global]\nroot-path = "{ipc_root}/"\nprefix = "{tag}_"\n')
+    me = _stat(os.getpid())
+    facts: dict[str, Any] = {
+        "job": job["id"],
+        "boot_id": _boot_id(),
+        "worker": os.getpid(),
+        "worker_start": me[1] if me else 0,
+        "leader": 0,
+        "leader_start": 0,
+        "prefix": f"{tag}_",
+    }
+    _write_facts(d, facts)
     env = dict(os.environ, R2G_IPC_CONFIG=str(config))
-    for var in ("RAY_ADDRESS",):
-        env.pop(var, None)
+    env.pop("RAY_ADDRESS", None)
+    cwd = job.get("cwd")
     stderr_path = d / "stderr.txt"
     t0 = time.monotonic()
     with open(stderr_path, "wb") as err:
@@ -154,18 +250,19 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
             stderr=err,
             stdin=subprocess.DEVNULL,
             env=env,
-            preexec_fn=_die_with_worker,
+            cwd=cwd if cwd and os.path.isdir(cwd) else None,
+            # Its own session: Ray's cleanup of the worker does not reach it, we end it as one.
+            start_new_session=True,
+            preexec_fn=_die_with_worker(),
         )
-        facts["pgid"] = proc.pid
-        (d / "job.json").write_text(json.dumps(facts))
-        if job.get("pid_file"):
-            # Who runs this job (tests kill it to check the retry and the cleanup).
-            Path(job["pid_file"]).write_text(f"{os.getpid()} {proc.pid}\n")
+        leader = _stat(proc.pid)
+        facts["leader"], facts["leader_start"] = proc.pid, leader[1] if leader else 0
+        _write_facts(d, facts)
         try:
             out, _ = proc.communicate()
         finally:
-            # Whatever is left of the group (an instance's processes) goes with the job.
-            _kill_group(proc.pid)
+            # Whatever is left of the session (an instance's processes) goes with the job.
+            _kill_session(proc.pid, int(facts["leader_start"]), tag)
     result = {
         "id": job["id"],
         "rc": proc.returncode,
@@ -182,17 +279,46 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
                 break
             except ValueError:
                 continue
-    _remove_job(d)
+    _remove_files(d, tag)
     return result
+
+
+def _failed(job: dict[str, Any], e: BaseException) -> dict[str, Any]:
+    return {"id": job["id"], "rc": None, "value": None, "error": f"{type(e).__name__}: {e}"[-1500:]}
 
 
 def _local(jobs: list[dict[str, Any]], r2g: str, workers: int) -> Iterator[dict[str, Any]]:
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        pending: set[Future[dict[str, Any]]] = {pool.submit(run_job, j, r2g) for j in jobs}
+        pending: dict[Future[dict[str, Any]], dict[str, Any]] = {pool.submit(run_job, j, r2g): j for j in jobs}
         while pending:
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
             for f in done:
-                yield f.result()
+                job = pending.pop(f)
+                try:
+                    yield f.result()
+                except Exception as e:  # the job could not run here: a row, as on Ray
+                    yield _failed(job, e)
+
+
+def _recorded_cluster() -> str | None:
+    """The cluster `ray.init(address="auto")` would join, if one answers: $RAY_ADDRESS, else the
+    one `ray start` recorded on this node. (Ray's own last resort, any GCS process `ps` shows,
+    is never used: on a shared machine that may be somebody else's cluster.)"""
+    address = os.environ.get("RAY_ADDRESS") or None
+    if address is None:
+        tmp = os.environ.get("RAY_TMPDIR") or tempfile.gettempdir()
+        try:
+            address = (Path(tmp) / "ray" / "ray_current_cluster").read_text().strip() or None
+        except OSError:
+            return None
+    if address is None:
+        return None
+    host, _, port = address.rpartition(":")
+    try:
+        with socket.create_connection((host, int(port)), timeout=2.0):
+            return address
+    except (OSError, ValueError):
+        return None
 
 
 def _ray(
@@ -202,39 +328,51 @@ def _ray(
         # Clusters started by `ray start` (2.5x and later) want a token by default; a driver on a
         # node that has one (copied there, see fleet/MULTINODE.md) presents it. Read at import.
         os.environ["RAY_AUTH_MODE"] = "token"
+    local = address == "auto" and _recorded_cluster() is None
+    if local or address.rpartition(":")[0] in ("127.0.0.1", "localhost", "[::1]"):
+        # A cluster of this batch alone, or one on loopback: Ray on Linux advertises the
+        # machine's address even when asked for 127.0.0.1, unless multi-node clusters are off
+        # (read when Ray is imported, and by the processes it starts).
+        os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
     import ray  # only here: a batch without --ray needs no Ray
-    if address == "auto":
-        try:
-            ray.init(address="auto", log_to_driver=False)
-        except ConnectionError:
-            # No cluster running: a local one for this batch, sized like `resources` says.
-            ray.init(resources={RESOURCE: node_capacity()}, include_dashboard=False, log_to_driver=False)
+
+    if local:
+        # Sized like `resources` says; "local": never a cluster some file still names.
+        ray.init(
+            address="local",
+            _node_ip_address="127.0.0.1",
+            resources={RESOURCE: node_capacity()},
+            include_dashboard=False,
+            log_to_driver=False,
+        )
     else:
         ray.init(address=address, log_to_driver=False)
-    total = ray.cluster_resources().get(RESOURCE, 0)
-    if not total:
-        raise SystemExit(
-            f"the Ray cluster offers no '{RESOURCE}' resource: start each node with "
-            f"--resources='{{\"{RESOURCE}\": N}}' (python fleet/py/r2g_fleet.py resources prints N)"
-        )
-    # At most `max_concurrent` at once: each task takes that share of the cluster's gym slots.
-    share = 1.0 if not max_concurrent else max(1.0, total / max_concurrent)
-    task = ray.remote(run_job).options(
-        resources={RESOURCE: share}, num_cpus=0, max_retries=retries, retry_exceptions=True
-    )
-    started = time.monotonic()
-    refs = {task.remote(j, r2g): j for j in jobs}
     try:
-        while refs:
+        if not ray.cluster_resources().get(RESOURCE, 0):
+            raise SystemExit(
+                f"the Ray cluster offers no '{RESOURCE}' resource: start each node with "
+                f"--resources='{{\"{RESOURCE}\": N}}' (python fleet/py/r2g_fleet.py resources prints N)"
+            )
+        # Each task takes one gym slot; at most `max_concurrent` are in flight, the next one
+        # submitted as one finishes (a task never waits for more slots than a node has).
+        task = ray.remote(run_job).options(
+            resources={RESOURCE: 1}, num_cpus=0, max_retries=retries, retry_exceptions=True
+        )
+        cap = max(1, max_concurrent) if max_concurrent else len(jobs)
+        queue = list(reversed(jobs))
+        refs: dict[Any, dict[str, Any]] = {}
+        while queue or refs:
+            while queue and len(refs) < cap:
+                j = queue.pop()
+                refs[task.remote(j, r2g)] = j
             done, _ = ray.wait(list(refs), num_returns=1)
             for ref in done:
                 job = refs.pop(ref)
                 try:
                     yield ray.get(ref)
                 except Exception as e:  # the task failed on every try
-                    yield {"id": job["id"], "rc": None, "value": None, "error": f"{type(e).__name__}: {e}"[-1500:]}
+                    yield _failed(job, e)
     finally:
-        _ = started
         ray.shutdown()
 
 

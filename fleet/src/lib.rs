@@ -57,7 +57,10 @@ pub fn run(jobs: &[Job], backend: &Backend, work_dir: &Path, mut on_result: impl
     }
     std::fs::create_dir_all(work_dir).with_context(|| format!("creating {}", work_dir.display()))?;
     let list = work_dir.join(format!(".fleet-jobs-{}.json", std::process::id()));
-    let body: Vec<Value> = jobs.iter().map(|j| json!({"id": j.id, "args": j.args})).collect();
+    // Jobs run in this working directory wherever it exists (a relative path in their arguments
+    // means the same there as here; see MULTINODE.md for other nodes).
+    let cwd = std::env::current_dir().context("the working directory")?;
+    let body: Vec<Value> = jobs.iter().map(|j| json!({"id": j.id, "args": j.args, "cwd": cwd})).collect();
     std::fs::write(&list, serde_json::to_vec(&body)?)?;
     let r2g = std::env::current_exe().context("locating r2g")?;
     let mut cmd = Command::new(&python);
@@ -100,6 +103,8 @@ pub fn run(jobs: &[Job], backend: &Backend, work_dir: &Path, mut on_result: impl
 /// Replays of the gyms' demonstrations, `seeds` seeds each (0, 1, ...), as jobs on `backend`;
 /// traces and verdicts under `out`. Returns the summary: success rate per gym and overall.
 pub fn replays(gyms: &[String], seeds: u64, backend: &Backend, out: &Path) -> anyhow::Result<Value> {
+    // Absolute: each job runs wherever a worker is, in whatever directory it has.
+    let out = &std::path::absolute(out)?;
     let mut jobs = Vec::new();
     for g in gyms {
         for s in 0..seeds.max(1) {

@@ -9,7 +9,7 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use ipc_schema::{EnvAnswer, EnvQuery, EnvQueryKind, Qos, Services, ENV_ANSWER_LEN};
 
-use crate::trace::{evaluate, Trace};
+use crate::trace::{evaluate, Evaluation, Trace};
 use crate::Sim;
 
 type S = ipc::Service;
@@ -59,17 +59,9 @@ impl EnvService {
                 k if k == EnvQueryKind::Evaluate as u32 => {
                     let e = evaluate(&sim.scene, trace);
                     a.success = u32::from(e.success);
-                    let mut json = serde_json::to_vec(&e)?;
-                    if json.len() > ENV_ANSWER_LEN {
-                        // Never half a document: the verdict without the checks' values.
-                        let names: Vec<(&String, bool)> = e.checks.iter().map(|(k, c)| (k, c.pass)).collect();
-                        json = serde_json::to_vec(&serde_json::json!({
-                            "success": e.success, "checks_pass": names, "cut": "the checks' values did not fit"
-                        }))?;
-                    }
-                    let n = json.len().min(ENV_ANSWER_LEN);
-                    a.json[..n].copy_from_slice(&json[..n]);
-                    a.len = n as u32;
+                    let json = verdict_json(&e)?;
+                    a.json[..json.len()].copy_from_slice(&json);
+                    a.len = json.len() as u32;
                 }
                 _ => {
                     let json = format!("{{\"error\": \"unknown query kind {}\"}}", q.kind);
@@ -84,5 +76,64 @@ impl EnvService {
             self.wake.notify()?;
         }
         Ok(answered)
+    }
+}
+
+/// The verdict as JSON of at most [`ENV_ANSWER_LEN`] bytes, never half a document: the whole
+/// evaluation, else its checks without their values (`{"checks": {name: {"pass": ..}}}`, the
+/// shape the environment reads either way), else the success alone; `cut` says what was left out.
+pub fn verdict_json(e: &Evaluation) -> serde_json::Result<Vec<u8>> {
+    let json = serde_json::to_vec(e)?;
+    if json.len() <= ENV_ANSWER_LEN {
+        return Ok(json);
+    }
+    let checks: serde_json::Map<String, serde_json::Value> =
+        e.checks.iter().map(|(k, c)| (k.clone(), serde_json::json!({"pass": c.pass}))).collect();
+    let json = serde_json::to_vec(&serde_json::json!({
+        "gym": e.gym, "success": e.success, "checks": checks, "cut": "the checks' values did not fit"
+    }))?;
+    if json.len() <= ENV_ANSWER_LEN {
+        return Ok(json);
+    }
+    serde_json::to_vec(&serde_json::json!({
+        "gym": e.gym, "success": e.success, "checks": {}, "cut": "the checks did not fit"
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::trace::Check;
+
+    fn evaluation(checks: usize, value_bytes: usize) -> Evaluation {
+        Evaluation {
+            gym: "g".into(),
+            success: true,
+            checks: (0..checks)
+                .map(|i| (format!("check_{i:04}"), Check { value: "v".repeat(value_bytes).into(), pass: i % 2 == 0 }))
+                .collect(),
+            trace_sha256: String::new(),
+            criteria_sha256: String::new(),
+            samples: 1,
+            sim_time_s: 0.0,
+        }
+    }
+
+    fn read(json: &[u8]) -> serde_json::Value {
+        assert!(json.len() <= ENV_ANSWER_LEN, "{} bytes", json.len());
+        serde_json::from_slice(json).expect("a whole document")
+    }
+
+    #[test]
+    fn an_oversized_verdict_keeps_the_checks_pass_in_the_shape_the_environment_reads() {
+        let small = read(&verdict_json(&evaluation(3, 10)).expect("json"));
+        assert_eq!(small["checks"]["check_0000"]["value"], "vvvvvvvvvv");
+        let cut = read(&verdict_json(&evaluation(20, 400)).expect("json"));
+        assert_eq!(cut["checks"].as_object().map(|c| c.len()), Some(20));
+        assert_eq!(cut["checks"]["check_0000"]["pass"], true);
+        assert_eq!(cut["checks"]["check_0001"]["pass"], false);
+        assert!(cut["cut"].is_string());
+        let bare = read(&verdict_json(&evaluation(400, 1)).expect("json"));
+        assert_eq!((bare["success"].as_bool(), bare["checks"].as_object().map(|c| c.len())), (Some(true), Some(0)));
     }
 }

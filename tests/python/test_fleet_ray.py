@@ -1,7 +1,8 @@
 """`r2g batch --ray` on a real local Ray head this test starts and stops itself (by the process
-group it created, never `ray stop`): eight scripted episodes (recorded conversations, so
-synthetic model answers), one Ray worker SIGKILLed mid-episode, the episode retried, and
-nothing of the killed job left (processes, /dev/shm files) within 15 s."""
+group it created, never `ray stop`), on loopback only: eight scripted episodes (recorded
+conversations, so synthetic model answers), one Ray worker SIGKILLed mid-episode, the episode
+retried (a second attempt seen starting), and nothing of the killed job left (processes,
+/dev/shm files, its iceoryx2 root under /tmp) within 15 s."""
 from __future__ import annotations
 
 import json
@@ -17,6 +18,9 @@ import pytest
 from conftest import R2G, ROOT
 
 RAY = ROOT / ".venv" / "bin" / "ray"
+LOOPBACK = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+"""Ray on Linux turns --node-ip-address=127.0.0.1 into the machine's address unless multi-node
+clusters are off: the head, the batch's driver and the workers stay on loopback."""
 
 
 def _free_port() -> int:
@@ -61,11 +65,12 @@ def ray_head(tmp_path: Path):
         pytest.fail(f"{RAY} missing: make venv installs requirements-ray.txt")
     port = _free_port()
     jobs = tmp_path / "jobs"
-    env = dict(os.environ, R2G_FLEET_DIR=str(jobs), RAY_USAGE_STATS_ENABLED="0")
+    env = dict(os.environ, R2G_FLEET_DIR=str(jobs), **LOOPBACK)
+    log = tmp_path / "ray-head.log"
     head = subprocess.Popen(
-        [str(RAY), "start", "--head", f"--port={port}", "--num-cpus=2",
+        [str(RAY), "start", "--head", "--node-ip-address=127.0.0.1", f"--port={port}", "--num-cpus=2",
          '--resources={"r2g_gym": 2}', "--include-dashboard=false", "--block"],
-        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+        env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT, start_new_session=True,
     )
     try:
         deadline = time.monotonic() + 120
@@ -75,6 +80,8 @@ def ray_head(tmp_path: Path):
                     break
             assert head.poll() is None, "ray start exited"
             time.sleep(0.5)
+        # The node advertises loopback, not the machine's address.
+        assert "Local node IP: 127.0.0.1" in log.read_text(errors="replace"), log.read_text(errors="replace")[-2000:]
         yield head, f"127.0.0.1:{port}", jobs
     finally:
         # The group this test created: `ray start --block` and what it started.
@@ -95,53 +102,79 @@ def ray_head(tmp_path: Path):
         head.wait(timeout=10)
 
 
+def _jobs_seen(jobs: Path) -> dict[str, dict[str, object]]:
+    seen: dict[str, dict[str, object]] = {}
+    for f in jobs.glob("*/job.json") if jobs.is_dir() else []:
+        try:
+            seen[f.parent.name.split(".")[0]] = json.loads(f.read_text())
+        except (OSError, ValueError):
+            continue
+    return seen
+
+
 def test_a_ray_batch_survives_a_killed_worker_and_leaves_nothing_behind(ray_head, tmp_path: Path) -> None:
     head, address, jobs = ray_head
     out = tmp_path / "batch"
     batch = subprocess.Popen(
         [str(R2G), "batch", "pick_block_plate", "--episodes", "8", "--max-decisions", "3", "--ray", address,
          "--out", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ, **LOOPBACK),
     )
-    # A job that has started its episode: its folder names the worker, the group and the prefix.
+    try:
+        _survives_a_killed_worker(batch, head, jobs, out)
+    finally:
+        if batch.poll() is None:
+            batch.kill()
+            batch.communicate()
+
+
+def _survives_a_killed_worker(batch: subprocess.Popen[str], head: subprocess.Popen[bytes], jobs: Path, out: Path) -> None:
+    # A job that has started its episode: its folder names the worker, the session and the prefix.
     victim = None
     deadline = time.monotonic() + 180
     while victim is None and time.monotonic() < deadline and batch.poll() is None:
-        for f in jobs.glob("*/job.json") if jobs.is_dir() else []:
-            try:
-                facts = json.loads(f.read_text())
-            except ValueError:
-                continue
-            if facts.get("pgid") and _shm(facts["prefix"]) and len(_group(facts["pgid"])) >= 3:
-                victim = facts
+        for tag, facts in _jobs_seen(jobs).items():
+            if facts.get("leader") and _shm(str(facts["prefix"])) and len(_group(int(str(facts["leader"])))) >= 3:
+                victim = dict(facts, tag=tag)
                 break
         time.sleep(0.2)
     if victim is None:
         batch.kill()
         pytest.fail(f"no episode was seen running: {batch.communicate()[1][-3000:]}")
-    worker, pgid, prefix = int(victim["worker"]), int(victim["pgid"]), victim["prefix"]
+    worker, pgid, prefix = int(victim["worker"]), int(victim["leader"]), str(victim["prefix"])
+    ipc_root = Path("/tmp") / str(victim["tag"])
     assert _descends_from(worker, head.pid), "the worker must be a process of the Ray head this test started"
-    before = {"processes": _group(pgid), "shm": _shm(prefix)}
+    assert ipc_root.is_dir()
+    before = {"processes": _group(pgid), "shm": _shm(prefix), "ipc_root": ipc_root.is_dir()}
     print("before SIGKILL:", json.dumps(before, indent=1))
     os.kill(worker, signal.SIGKILL)
     killed_at = time.monotonic()
     left = before
+    retried = False
     while time.monotonic() - killed_at < 15:
-        left = {"processes": _group(pgid), "shm": _shm(prefix)}
-        if not left["processes"] and not left["shm"]:
+        left = {"processes": _group(pgid), "shm": _shm(prefix), "ipc_root": ipc_root.is_dir()}
+        retried = retried or any(
+            f.get("job") == victim["job"] and t != victim["tag"] for t, f in _jobs_seen(jobs).items()
+        )
+        if not left["processes"] and not left["shm"] and not left["ipc_root"]:
             break
         time.sleep(0.25)
     print(f"after SIGKILL ({time.monotonic() - killed_at:.1f} s):", json.dumps(left, indent=1))
-    assert not left["processes"] and not left["shm"], left
+    assert not left["processes"] and not left["shm"] and not left["ipc_root"], left
+    deadline = time.monotonic() + 120
+    while not retried and time.monotonic() < deadline and batch.poll() is None:
+        retried = any(f.get("job") == victim["job"] and t != victim["tag"] for t, f in _jobs_seen(jobs).items())
+        time.sleep(0.2)
     stdout, stderr = batch.communicate(timeout=600)
     assert batch.returncode == 0, stderr[-3000:]
     summary = json.loads(stdout.strip().splitlines()[-1])
     assert summary["episodes"] == 8 and summary["errors"] == 0, summary
+    assert retried, f"no second attempt of job {victim['job']} was seen starting"
     # The killed episode ran again: every episode folder has its result.
     assert all((out / f"episode-{i:03}" / "result.json").is_file() for i in range(8))
     assert json.loads((out / "batch.json").read_text())["episodes"] == 8
-    # Every job is gone: no folder, no shared memory of any job prefix.
+    # Every job is gone: no folder, no shared memory, no iceoryx2 root of any job of this batch.
     assert not list(jobs.glob("*/job.json")), list(jobs.iterdir())
-    assert not list(Path("/dev/shm").glob("r2gj*")) or all(
-        not p.name.startswith(prefix) for p in Path("/dev/shm").glob("r2gj*")
-    )
+    tags = {t for t in os.listdir(jobs)} if jobs.is_dir() else set()
+    assert not tags, tags
+    assert not any(p.name.startswith(prefix) for p in Path("/dev/shm").glob("r2gj*"))
