@@ -11,7 +11,7 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use ipc_schema::{ControlType, EnvAnswer, EnvQuery, EnvQueryKind, Services};
-use pyo3::exceptions::{PyConnectionError, PyValueError};
+use pyo3::exceptions::{PyConnectionError, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyDict};
 use robo::{Client, RoboError};
@@ -29,6 +29,8 @@ fn gone(e: impl std::fmt::Display) -> PyErr {
 fn robo_err(e: RoboError) -> PyErr {
     match e {
         RoboError::UnknownCamera { .. } | RoboError::BadSize { .. } => PyValueError::new_err(e.to_string()),
+        // The instance answers; a camera of it does not deliver: not a dead instance.
+        RoboError::NoFrame(..) => PyRuntimeError::new_err(e.to_string()),
         _ => gone(e),
     }
 }
@@ -124,7 +126,8 @@ impl Live {
         let (env, client) = (&mut self.env, &mut self.client);
         env.ask(EnvQueryKind::Seed, seed, Duration::from_secs(5)).map_err(|e| gone(format!("{e:#}")))?;
         if client.reset().map_err(robo_err)? != 1 {
-            return Err(gone(format!("the instance refused the reset: {}", client.feedback.reason)));
+            // It answered: alive, but the reset did not happen (a fault, another client's chunk).
+            return Err(PyRuntimeError::new_err(format!("the instance refused the reset: {}", client.feedback.reason)));
         }
         let s = client.refresh_state(Duration::from_secs(2)).map_err(robo_err)?;
         state_dict(py, &s)

@@ -639,9 +639,15 @@ impl Controller {
         // A new chunk from the client whose chunk is running (or being checked) replaces it,
         // blending from the current command; anything else waits for the running request, and
         // nothing but the stepping client's own chunks runs during a step.
-        if req.kind == RequestKind::Reset as u32 && self.step.is_none() && self.paced == Some(req.client) {
+        if req.kind == RequestKind::Reset as u32
+            && self.profile != Profile::Franka
+            && self.step.is_none()
+            && self.paced == Some(req.client)
+        {
             // Between its steps time stands still, so what the stepping client left moving (or
             // braking) would never end: its reset ends it, as a reset restores the arm anyway.
+            // Never on a real arm: there a reset restores nothing, and a braking arm keeps
+            // braking until it holds.
             self.active = None;
             self.halting = false;
             self.stop_reply = None;

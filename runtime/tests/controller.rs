@@ -680,3 +680,40 @@ fn a_step_lasts_exactly_its_ticks_and_paces_time_until_the_next_reset() {
     let (_, _) = ctl.request(&request(5, ControlType::Joint, &ramp(HOME, 0, 0.05, 1)), &state);
     assert!(ctl.advancing());
 }
+
+#[test]
+fn on_a_real_arm_a_stepping_clients_reset_leaves_the_moving_chunk_running() {
+    // On the sim profile a reset of the pacing client ends what it left moving (the simulator
+    // restores the arm); on the Franka profile a reset restores nothing, so the chunk must run
+    // (or brake) to its end, never be dropped mid-motion.
+    let mut ctl = franka(1e6, 1e6);
+    let mut state = SimState { seq: 1, q_rad: HOME, finger_m: 0.04, finger_max_m: 0.04, ..SimState::default() };
+    let mut far = request(1, ControlType::Joint, &ramp(HOME, 0, 0.8, 1));
+    far.kind = RequestKind::Step as u32;
+    far.step_ticks = 20;
+    assert!(ctl.request(&far, &state).0.is_none());
+    let stepped = loop {
+        let (cmd, reply) = ctl.tick(&state);
+        state.seq += 1;
+        state.q_rad = cmd.q_rad;
+        state.dq_rad_s = cmd.dq_rad_s;
+        assert!(reply.is_none());
+        if let Some(s) = ctl.take_stepped() {
+            break s;
+        }
+    };
+    assert_eq!(stepped.id, 1);
+    assert!(ctl.busy(), "the chunk still moves between steps");
+    let mut reset = request(2, ControlType::Joint, &[]);
+    reset.kind = RequestKind::Reset as u32;
+    let (r, fwd) = ctl.request(&reset, &state);
+    assert!(matches!(fwd, runtime::controller::Forward::None));
+    let r = r.expect("answered at once");
+    assert_ne!(
+        r.status,
+        Status::Executed as u32,
+        "a reset on a moving real arm is not a no-op success: {}",
+        r.reason_str()
+    );
+    assert!(ctl.busy(), "the moving chunk was dropped by the reset");
+}

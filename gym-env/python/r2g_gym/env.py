@@ -40,6 +40,8 @@ class InvalidActionError(ValueError, AssertionError):
     against gymnasium's classic environments, which assert ``action_space.contains(action)``."""
 
 
+MAX_STEP_TICKS = 10_000
+"""The longest step the runtime takes (runtime::controller::MAX_STEP_TICKS)."""
 _instances = itertools.count()
 _PR_SET_PDEATHSIG = 1
 
@@ -82,10 +84,15 @@ def _r2g_binary(explicit: str | None) -> str:
 class _Instance:
     """An `r2g up <gym> --env` this environment started and stops."""
 
-    def __init__(self, r2g: str, scene: Path, mode: str, render_hz: float, timeout_s: float) -> None:
+    def __init__(
+        self, r2g: str, scene: Path, mode: str, render_hz: float, timeout_s: float, robot_config: str | None
+    ) -> None:
         self.name = f"gym{os.getpid()}x{next(_instances)}"
         self.log = tempfile.TemporaryFile()
         cmd = [r2g, "up", str(scene), "--mode", mode, "--instance", self.name, "--env", "--render-hz", str(render_hz)]
+        if robot_config is not None:
+            # The instance limits commands with the same configuration the spaces are built from.
+            cmd += ["--robot-config", str(Path(robot_config).resolve())]
         self.proc = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=self.log, stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent
         )
@@ -95,8 +102,9 @@ class _Instance:
         while not line.startswith(b"READY"):
             left = deadline - time.monotonic()
             if left <= 0 or self.proc.poll() is not None:
+                tail = self.log_tail()  # before stop() closes the log
                 self.stop()
-                raise RuntimeError(f"`{' '.join(cmd)}` did not become ready: {self.log_tail()}")
+                raise RuntimeError(f"`{' '.join(cmd)}` did not become ready: {tail}")
             ready, _, _ = select.select([self.proc.stdout], [], [], min(left, 0.5))
             if ready:
                 line = self.proc.stdout.readline()
@@ -187,7 +195,9 @@ class R2GEnv(gym.Env[dict[str, Any], np.ndarray]):
         else:
             if instance is None:
                 render_hz = 100.0 if (self.cameras or render_mode) else 0.0
-                self._instance = _Instance(_r2g_binary(r2g), scene, live_mode, render_hz, start_timeout_s)
+                self._instance = _Instance(
+                    _r2g_binary(r2g), scene, live_mode, render_hz, start_timeout_s, robot_config
+                )
                 instance = self._instance.name
             try:
                 self._native = _native.Live(instance, str(scene), native_control, robot_config)
@@ -201,6 +211,8 @@ class R2GEnv(gym.Env[dict[str, Any], np.ndarray]):
         if period_s <= 0 or abs(ticks - round(ticks)) > 1e-6:
             raise ValueError(f"period_s = {period_s} is not a whole number of {spec['timestep_s']} s physics steps")
         self.period_ticks = int(round(ticks))
+        if self.period_ticks > MAX_STEP_TICKS:
+            raise ValueError(f"period_s = {period_s} is longer than a step may last ({MAX_STEP_TICKS} physics steps)")
         self.period_s = period_s
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / period_s))}
         unknown = [c for c in self.cameras + ([render_camera] if render_mode else []) if c not in spec["cameras"]]
@@ -256,6 +268,9 @@ class R2GEnv(gym.Env[dict[str, Any], np.ndarray]):
         except ConnectionError as e:
             self._dead = str(e)
             raise ConnectionError(f"{self._where()}: {e}") from e
+        # A reset that went through: the instance answers again (a refused one raised
+        # RuntimeError above and left the episode as it was).
+        self._dead = None
         self._last_obs = self._observation(state)
         return self._copy(self._last_obs), {"episode_seed": episode_seed, "sim_time_s": state["sim_time_s"]}
 
