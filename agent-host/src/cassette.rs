@@ -344,7 +344,19 @@ impl Player {
         };
         let mut served = self.served.lock().unwrap_or_else(|p| p.into_inner());
         let i = served.entry(c.key.clone()).or_insert(0);
-        let r = list[(*i).min(list.len() - 1)].clone();
+        // Asked once more than it was recorded: not in the cassette either (never a repeat).
+        let Some(r) = list.get(*i).cloned() else {
+            return Err(CassetteError::Miss {
+                key: c.key.clone(),
+                path: self.path.clone(),
+                entries: self.requests.len(),
+                nearest: format!(
+                    "this exact request was recorded {} time(s) and is now asked for the {}th time",
+                    list.len(),
+                    *i + 1
+                ),
+            });
+        };
         *i += 1;
         Ok(r)
     }
@@ -667,8 +679,11 @@ mod tests {
         rec.append(&c, &completion("one")).expect("append");
         rec.append(&c, &completion("two")).expect("append");
         let p = Player::open(&path).expect("open");
-        let got: Vec<String> = (0..3).map(|_| p.answer(&c).expect("answer").text).collect();
-        assert_eq!(got, ["one", "two", "two"]);
+        let got: Vec<String> = (0..2).map(|_| p.answer(&c).expect("answer").text).collect();
+        assert_eq!(got, ["one", "two"]);
+        // A third ask was never recorded: it fails loudly, never repeats the last answer.
+        let e = p.answer(&c).expect_err("a third ask is a miss").to_string();
+        assert!(e.contains("recorded 2 time(s)") && e.contains("3th time"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -15,12 +15,21 @@ pub struct AdmitArgs {
     /// Held-out model-free runs a candidate must pass (0: no admission runs).
     #[arg(long, default_value_t = 5)]
     pub admit_runs: u64,
-    /// Share of them that must succeed.
-    #[arg(long, default_value_t = 0.8)]
+    /// Share of them that must succeed, in (0, 1].
+    #[arg(long, default_value_t = 0.8, value_parser = share)]
     pub admit_share: f64,
     /// Placement perturbation of the admission runs.
     #[arg(long, default_value = "xy=0.03,yaw=15")]
     pub admit_perturb: sim_host::placement::Perturbation,
+}
+
+fn share(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|e| format!("{s:?} is not a number: {e}"))?;
+    if v > 0.0 && v <= 1.0 {
+        Ok(v)
+    } else {
+        Err(format!("{s} is not a share in (0, 1]: 0 would admit a skill that never succeeded"))
+    }
 }
 
 impl AdmitArgs {

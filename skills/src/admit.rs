@@ -114,7 +114,17 @@ pub fn check(root: &Path, skill: &Skill, o: &AdmitOpts) -> anyhow::Result<(Vec<S
     }
     let mut sources = Vec::new();
     for stage in &skill.procedure {
-        let Some(src) = stage.source.as_deref() else { continue };
+        let moves = stage.steps.iter().any(|s| matches!(s, Step::Move { .. }));
+        let Some(src) = stage.source.as_deref() else {
+            if moves {
+                // A rule nobody can reproduce from a recorded round is not evidence-backed.
+                problems.push(format!(
+                    "stage {}: moves by rules but names no source round to re-instantiate them on",
+                    stage.name
+                ));
+            }
+            continue;
+        };
         match source_targets(root, skill, stage, src) {
             Ok((targets, (obs, reference))) => {
                 sources.push(json!({"obs": obs, "reference": reference, "targets": targets}))

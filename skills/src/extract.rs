@@ -57,18 +57,49 @@ impl Findings {
     }
 }
 
-/// Steps 1-3 (no model).
-pub fn analyse(root: &Path, run: &Path) -> anyhow::Result<Findings> {
-    let record = RunRecord::open(run)?;
-    let labels = record.labels()?;
+/// The objects a round changed (moved, lifted, grasped, set down, dropped or toppled).
+fn acted_on(l: &Label) -> std::collections::BTreeSet<&str> {
+    let Some(e) = &l.effects else { return Default::default() };
+    e.moved
+        .iter()
+        .chain(&e.rose)
+        .chain(&e.fell)
+        .chain(&e.toppled)
+        .map(|(o, _)| o.as_str())
+        .chain(e.grasped.iter().map(String::as_str))
+        .chain(e.rests_on.iter().map(|(o, _)| o.as_str()))
+        .collect()
+}
+
+/// Failed rounds and the round that corrected each (see `analyse`).
+pub fn pair(labels: &[Label]) -> Vec<(u32, u32)> {
     let mut pairs = Vec::new();
     for (i, l) in labels.iter().enumerate() {
         if l.outcome == Outcome::Negative {
-            if let Some(next) = labels[i + 1..].iter().find(|m| m.outcome == Outcome::Positive) {
+            // The correction acts on what the failure acted on; a failure that touched nothing
+            // (a missed grasp) is corrected by the next round that grasped something.
+            let failed = acted_on(l);
+            let corrects = |m: &&Label| {
+                m.outcome == Outcome::Positive
+                    && if failed.is_empty() {
+                        m.effects.as_ref().is_some_and(|e| !e.grasped.is_empty())
+                    } else {
+                        !acted_on(m).is_disjoint(&failed)
+                    }
+            };
+            if let Some(next) = labels[i + 1..].iter().find(corrects) {
                 pairs.push((l.round, next.round));
             }
         }
     }
+    pairs
+}
+
+/// Steps 1-3 (no model).
+pub fn analyse(root: &Path, run: &Path) -> anyhow::Result<Findings> {
+    let record = RunRecord::open(run)?;
+    let labels = record.labels()?;
+    let pairs = pair(&labels);
     let mut drafts = BTreeMap::new();
     let mut skipped = Vec::new();
     for l in labels.iter().filter(|l| l.outcome == Outcome::Positive) {
@@ -269,4 +300,35 @@ pub fn ask(endpoint: &EndpointConfig, prompt_text: &str) -> anyhow::Result<Excha
 /// Where extraction writes what it did, beside the record.
 pub fn report_path(run: &Path) -> PathBuf {
     run.join("extraction.json")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn label(round: u32, outcome: Outcome, moved: &[&str], grasped: &[&str]) -> Label {
+        Label {
+            round,
+            outcome,
+            reasons: vec![],
+            effects: Some(Effects {
+                moved: moved.iter().map(|o| (o.to_string(), 0.05)).collect(),
+                grasped: grasped.iter().map(|o| o.to_string()).collect(),
+                ..Default::default()
+            }),
+        }
+    }
+
+    #[test]
+    fn a_failure_pairs_with_the_next_success_on_the_same_object() {
+        let labels = vec![
+            label(1, Outcome::Negative, &["red_box"], &[]), // knocked the box
+            label(2, Outcome::Positive, &["blue_bowl"], &["blue_bowl"]), // another object: no correction
+            label(3, Outcome::Positive, &["red_box"], &["red_box"]),
+            label(4, Outcome::Negative, &[], &[]), // a miss: touched nothing
+            label(5, Outcome::Positive, &["red_box"], &[]), // pushed, grasped nothing
+            label(6, Outcome::Positive, &[], &["red_box"]),
+        ];
+        assert_eq!(pair(&labels), vec![(1, 3), (4, 6)]);
+    }
 }

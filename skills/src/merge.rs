@@ -465,15 +465,25 @@ pub fn housekeeping(lib: &mut Library, bound: f64, min_runs: u32, cap: usize) ->
     let active: Vec<Skill> = lib.active().cloned().collect();
     if active.len() > cap {
         let events = lib.events();
+        // Last given to an episode (selected or used), else when it was written first: a skill
+        // just added is not "unused for longest" because nothing has had a chance to use it.
+        let created = |id: &str| {
+            std::fs::metadata(lib.dir.join(id).join("v0001.json"))
+                .and_then(|m| m.modified())
+                .ok()
+                .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                .map_or(0.0, |d| d.as_secs_f64())
+        };
         let last_used = |id: &str| {
             events
                 .iter()
                 .filter(|e| {
-                    e["event"] == "selected"
-                        && e["detail"]["chosen"].as_array().is_some_and(|c| c.iter().any(|x| x == id))
+                    (e["event"] == "selected"
+                        && e["detail"]["chosen"].as_array().is_some_and(|c| c.iter().any(|x| x == id)))
+                        || (e["event"] == "used" && e["detail"]["skill"] == id)
                 })
                 .filter_map(|e| e["at_unix_s"].as_f64())
-                .fold(0.0f64, f64::max)
+                .fold(created(id), f64::max)
         };
         let mut by_use: Vec<(f64, Skill)> = active.into_iter().map(|s| (last_used(&s.id), s)).collect();
         by_use.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.id.cmp(&b.1.id)));

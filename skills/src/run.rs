@@ -52,6 +52,11 @@ pub struct RunResult {
     pub stop_reason: String,
     pub run_dir: String,
     pub evaluation: Value,
+    /// The skill's status when it ran (a candidate is not yet admitted).
+    pub status: String,
+    /// What makes this run's figures weaker: a skill not yet validated, one learned on another
+    /// robot (fingerprint differs), a skill file outside any library.
+    pub warnings: Vec<String>,
 }
 
 const PROGRAM: &str = r#"import json
@@ -68,8 +73,39 @@ except FileNotFoundError:
 robo_skills.run_skill(skill, absolute=absolute)
 "#;
 
+/// What makes a run of `skill` on `o`'s gym weaker than a validated skill on its own robot.
+pub fn warnings(skill: &Skill, o: &RunOpts) -> Vec<String> {
+    let mut w = Vec::new();
+    if skill.status != crate::format::Status::Validated {
+        w.push(format!(
+            "{} v{} is {:?}, not validated: admission has not confirmed it",
+            skill.id, skill.version, skill.status
+        ));
+    }
+    let rc = o.setup.robot_config.clone().unwrap_or_else(runtime::launch::default_robot_config);
+    match runtime::launch::resolve_scene(&o.gym).and_then(|scene| crate::fingerprint::of(&scene, &rc)) {
+        Ok(fp) if fp != skill.applicability.fingerprint => w.push(format!(
+            "{} was learned on another robot (fingerprint {}/{}/{}, this gym's {}/{}/{}): its motions may not mean the same here",
+            skill.id,
+            skill.applicability.fingerprint.gripper,
+            skill.applicability.fingerprint.profile,
+            &skill.applicability.fingerprint.kinematics.get(..12).unwrap_or(""),
+            fp.gripper,
+            fp.profile,
+            fp.kinematics.get(..12).unwrap_or(""),
+        )),
+        Ok(_) => {}
+        Err(e) => w.push(format!("this gym's robot fingerprint could not be computed: {e:#}")),
+    }
+    w
+}
+
 pub fn run(skill: &Skill, o: &RunOpts) -> anyhow::Result<RunResult> {
     let t0 = Instant::now();
+    let warnings = warnings(skill, o);
+    for w in &warnings {
+        eprintln!("r2g skills run: warning: {w}");
+    }
     let root = session::root();
     let run_dir =
         session::run_folder(o.out.as_deref(), "skills", &format!("{}-{}", skill.id, o.gym.replace('/', "_")))?;
@@ -138,6 +174,8 @@ pub fn run(skill: &Skill, o: &RunOpts) -> anyhow::Result<RunResult> {
         stop_reason,
         run_dir: run_dir.display().to_string(),
         evaluation,
+        status: format!("{:?}", skill.status).to_lowercase(),
+        warnings,
     };
     let tmp = run_dir.join("result.json.partial");
     std::fs::write(&tmp, serde_json::to_vec_pretty(&r)?)?;

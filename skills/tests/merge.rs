@@ -302,3 +302,30 @@ fn a_version_is_never_overwritten_and_a_damaged_library_is_named() {
     assert!(e.to_string().contains("v0003.json") && e.to_string().contains("not a skill"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn over_the_cap_the_skill_unused_longest_retires_and_a_new_one_counts_from_its_writing() {
+    let dir = temp("cap");
+    let mut lib = Library::open(&dir).expect("open");
+    apply(&mut lib, &findings("run-a"), &parse_answer(ADD).expect("answer"), &ctx()).expect("apply");
+    let base = lib.get("pick-place-on-plate").expect("skill").clone();
+    for id in ["z-old", "a-new"] {
+        let mut s = base.clone();
+        s.id = id.into();
+        s.version = 1;
+        s.status = Status::Validated;
+        lib.write(s).expect("write");
+    }
+    // z-old was written an hour ago and never given to an episode; a-new just now.
+    let hour_ago = std::time::SystemTime::now() - std::time::Duration::from_secs(3600);
+    std::fs::File::options()
+        .write(true)
+        .open(dir.join("z-old/v0001.json"))
+        .and_then(|f| f.set_modified(hour_ago))
+        .expect("set mtime");
+    let mut lib = Library::open(&dir).expect("reopen");
+    let active = lib.active().count();
+    let retired = skills::merge::housekeeping(&mut lib, 0.0, u32::MAX, active - 1).expect("housekeeping");
+    assert_eq!(retired, vec!["z-old".to_string()]);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -81,6 +81,11 @@ def test_relate_then_bind_gives_the_target_back() -> None:
     "g = list(here)\ng[2] = 0.3\n",
     "t = np.array([0.45, 0.1, 0.2])\n",
     "t = (0.45, -0.1, 0.2, 3.1, 0.0, 0.0)\n",
+    "t = [0.2 + 0.25, 2 * 0.05, -(0.2)]\n",            # folded: still numbers
+    "t = [0.45, 0.1, 0.2] + [0.0, 0.0, 0.1]\n",        # constant + constant: a fixed position
+    "g = list(here)\ng[0], g[1] = 0.5, 0.1\n",          # a tuple assignment sets coordinates too
+    "g = list(here)\ng[2] = 0.1 + 0.2\n",
+    "rule = dict(offset_m=[0.5, 0.2, 0.3])\n",           # 0.62 m: a position, not an offset
 ])
 def test_the_lint_refuses_base_frame_numbers_on_the_parsed_code(code: str) -> None:
     with pytest.raises(rs.LintError, match="line"):
@@ -242,6 +247,8 @@ def test_the_skill_runs_without_a_model_where_the_objects_moved(learned: dict) -
     assert r["responses"] == 0 and r["tokens_in"] == 0 and r["tokens_out"] == 0
     assert rc == 0 and r["success"], (r["stop_reason"], err[-2000:])
     assert (learned["tmp"] / "run" / "result.json").is_file()
+    # A validated skill on the robot it was learned on: nothing weakens the figure.
+    assert r["status"] == "validated" and r["warnings"] == [], r["warnings"]
 
 
 def test_an_episode_given_skills_logs_its_selection_and_the_viewer_shows_it(learned: dict) -> None:

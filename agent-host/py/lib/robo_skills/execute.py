@@ -27,6 +27,7 @@ import robo_perception as rp
 from robo_perception.transforms import matrix_to_pose, pose_to_matrix
 
 from .frames import Anchor, AnchorError, bind
+from .lint import LintError, check_code
 
 CAMERAS = ("agentview", "wrist")
 MAX_STEP_M, MAX_STEP_RAD = 0.04, 0.30  # under the runtime's 5 cm / 0.35 rad caps
@@ -117,11 +118,12 @@ class SkillRunner:
 
     # ---- motion ----
 
-    def _post(self, poses: list, gripper: float, what: str) -> None:
+    def _post(self, poses: list, gripper: float, what: str) -> bool:
         """Posts the poses in chunks. A refused chunk (nothing moved) fails the stage. A chunk the
         arm could not finish because something stopped it ("not reached": the hand touched
         down, a held object met its support) ends this motion where the arm is; the stage's
-        checks then judge whether that was the effect wanted."""
+        checks then judge whether that was the effect wanted. Returns False when it stopped
+        short, True when every pose was reached."""
         robo = _robo()
         for k in range(0, len(poses), CHUNK):
             chunk = rp.waypoints(poses[k:k + CHUNK], gripper)
@@ -130,9 +132,11 @@ class SkillRunner:
                 reason = str(fb.get("reason") or "")
                 if fb.get("status") == "failed" and reason.startswith("not reached"):
                     self.log({"event": "stopped_short", "what": what, "executed": fb.get("executed"), "reason": reason})
-                    break
+                    self.gripper = gripper
+                    return False
                 raise StageFailed(f"{what}: {fb.get('status')} after {fb.get('executed')} waypoints: {reason}")
         self.gripper = gripper
+        return True
 
     def move(self, rule_id: str, goal: list) -> None:
         robo = _robo()
@@ -157,11 +161,14 @@ class SkillRunner:
         final = rp.interpolate_poses(start, goal, max_step_m=step, max_step_rad=MAX_STEP_RAD)
         stop = (rule.get("stop") or {}).get("kind", "reached")
         if stop == "contact":
-            if path:
-                self._post(path, grip, f"rule {rule_id}: to the pre-pose")
+            if path and not self._post(path, grip, f"rule {rule_id}: to the pre-pose"):
+                return  # stopped before the approach even began: the checks judge
             limit = float(rule["stop"].get("force_n", 5.0))
             for k in range(0, len(final), CONTACT_CHUNK):
-                self._post(final[k:k + CONTACT_CHUNK], grip, f"rule {rule_id}")
+                if not self._post(final[k:k + CONTACT_CHUNK], grip, f"rule {rule_id}"):
+                    # The runtime stopped the arm short: that is the contact; never push on.
+                    self.log({"event": "contact", "rule": rule_id, "stopped_short": True})
+                    return
                 f = robo.get_state([]).get("external_force_n") or [0.0]
                 if float(np.linalg.norm(np.asarray(f, dtype=float))) > limit:
                     self.log({"event": "contact", "rule": rule_id, "force_n": [float(v) for v in f]})
@@ -243,7 +250,7 @@ class SkillRunner:
             elif "hold_s" in step:
                 self.grip(self.gripper, float(step["hold_s"]))
         if stage.get("code"):
-            # Stage code (linted at admission: no base-frame numbers) sees the runner and a fresh
+            # Stage code (linted before the run: no base-frame numbers) sees the runner and a fresh
             # observation; anything it raises fails the stage.
             scene, state = self.observe()
             env = {"runner": self, "scene": scene, "state": state, "rp": rp, "np": np, "__name__": "__skill_stage__"}
@@ -263,7 +270,17 @@ class SkillRunner:
 
     def run(self) -> dict:
         t0 = time.monotonic()
-        stages = []
+        stages: list[dict] = []
+        # Whatever the skill came from (a library or a file given to `r2g skills run`), its
+        # code is linted before anything moves.
+        for stage in self.skill.get("procedure", []):
+            if stage.get("code"):
+                try:
+                    check_code(stage["code"], f"stage {stage.get('name')}")
+                except LintError as e:
+                    stages.append({"stage": stage.get("name"), "ok": False, "attempts": 0, "reason": str(e)})
+                    return {"ok": False, "stages": stages, "reason": f"refused before running: {e}",
+                            "wall_s": time.monotonic() - t0}
         for stage in self.skill.get("procedure", []):
             tries = 1 + int(stage.get("retries", 1))
             for attempt in range(tries):

@@ -3,12 +3,17 @@
 A skill must work wherever its objects are now, so a position in its code must come from
 perception or a rule, never from a number written down. On the syntax tree (`ast`):
 
+- numbers are folded first (``0.2 + 0.1``, ``2 * 0.15``, ``-(0.3)`` are numbers);
 - a literal sequence of 3, 6 or 7 numbers (a position, a pose, a waypoint), or ``np.array`` of
-  one, is refused unless it is a *difference*: an operand of ``+`` or ``-`` (``here + [0, 0,
-  0.1]``) or of ``+=``/``-=``, or the value of a rule keyword (``offset_m=``, ``axis=``,
-  ``tilt_rad=``); a sequence of only 0 and ±1 (an axis, a unit vector) is always allowed;
-- assigning a fixed number to an element (``goal[2] = 0.3``) is refused: that sets a
-  coordinate; ``goal[2] += 0.1`` moves it and is allowed;
+  one, is refused unless it is a *difference*: an operand of ``+`` or ``-`` whose other operand
+  is not itself constant (``here + [0, 0, 0.1]``; ``[0.5, 0, 0.3] + [0, 0, 0.1]`` is still a
+  fixed position), or of ``+=``/``-=``, or the value of a rule keyword (``offset_m=``,
+  ``axis=``, ``tilt_rad=``); a sequence of only 0 and ±1 (an axis, a unit vector) is always
+  allowed; an ``offset_m=`` longer than 0.4 m is refused (no grasp or approach offset is that
+  long: it is a position in disguise);
+- assigning a fixed number to an element (``goal[2] = 0.3``, also inside a tuple assignment
+  ``goal[0], goal[1] = 0.5, 0.1``) is refused: that sets a coordinate; ``goal[2] += 0.1``
+  moves it and is allowed;
 - code that does not parse or compile is refused with the line.
 
 `check_code(text)` returns nothing or raises `LintError` naming every offending line.
@@ -20,6 +25,7 @@ import ast
 
 RULE_KEYWORDS = {"offset_m", "axis", "tilt_rad"}
 POSE_LENGTHS = {3, 6, 7}
+MAX_OFFSET_M = 0.4
 
 
 class LintError(ValueError):
@@ -32,7 +38,24 @@ def _number(n: ast.AST) -> float | None:
     if isinstance(n, ast.UnaryOp) and isinstance(n.op, (ast.USub, ast.UAdd)):
         v = _number(n.operand)
         return None if v is None else (-v if isinstance(n.op, ast.USub) else v)
+    if isinstance(n, ast.BinOp) and isinstance(n.op, (ast.Add, ast.Sub, ast.Mult, ast.Div)):
+        a, b = _number(n.left), _number(n.right)
+        if a is None or b is None:
+            return None
+        try:
+            return {ast.Add: a + b, ast.Sub: a - b, ast.Mult: a * b, ast.Div: a / b if b else None}[type(n.op)]
+        except OverflowError:
+            return None
     return None
+
+
+def _constant(n: ast.AST) -> bool:
+    """Whether ``n`` is made of numbers only (a number, a literal pose, sums of them)."""
+    if _number(n) is not None or _literal_pose(n) is not None:
+        return True
+    if isinstance(n, ast.BinOp) and isinstance(n.op, (ast.Add, ast.Sub)):
+        return _constant(n.left) and _constant(n.right)
+    return False
 
 
 def _literal_pose(n: ast.AST) -> list[float] | None:
@@ -59,8 +82,11 @@ class _Linter(ast.NodeVisitor):
 
     def visit_BinOp(self, node: ast.BinOp) -> None:
         if isinstance(node.op, (ast.Add, ast.Sub)):
-            self._allow(node.left)
-            self._allow(node.right)
+            # A difference moves something measured; constant + constant is a fixed position.
+            if not _constant(node.right):
+                self._allow(node.left)
+            if not _constant(node.left):
+                self._allow(node.right)
         self.generic_visit(node)
 
     def visit_AugAssign(self, node: ast.AugAssign) -> None:
@@ -71,13 +97,26 @@ class _Linter(ast.NodeVisitor):
     def visit_keyword(self, node: ast.keyword) -> None:
         if node.arg in RULE_KEYWORDS:
             self._allow(node.value)
+            vals = _literal_pose(node.value)
+            if node.arg == "offset_m" and vals is not None and sum(v * v for v in vals[:3]) ** 0.5 > MAX_OFFSET_M:
+                self.problems.append(
+                    f"line {node.lineno}: offset_m={[round(v, 4) for v in vals]} is longer than {MAX_OFFSET_M} m: "
+                    "that is a position, not an offset from the object")
         self.generic_visit(node)
 
-    def visit_Assign(self, node: ast.Assign) -> None:
-        v = _number(node.value)
-        if v is not None and v != 0.0 and any(isinstance(t, ast.Subscript) for t in node.targets):
-            self.problems.append(f"line {node.lineno}: sets a coordinate to the fixed number {v:g} "
+    def _sets(self, target: ast.AST, value: ast.AST, line: int) -> None:
+        if isinstance(target, (ast.Tuple, ast.List)) and isinstance(value, (ast.Tuple, ast.List)):
+            for t, v in zip(target.elts, value.elts):
+                self._sets(t, v, line)
+            return
+        v = _number(value)
+        if v is not None and v != 0.0 and isinstance(target, ast.Subscript):
+            self.problems.append(f"line {line}: sets a coordinate to the fixed number {v:g} "
                                  "(move it relative to a measured or bound pose instead, e.g. with +=)")
+
+    def visit_Assign(self, node: ast.Assign) -> None:
+        for t in node.targets:
+            self._sets(t, node.value, node.lineno)
         self.generic_visit(node)
 
     def _literal(self, node: ast.AST) -> None:
