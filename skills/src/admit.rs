@@ -205,7 +205,11 @@ pub fn admit(root: &Path, lib: &mut Library, id: &str, o: &AdmitOpts) -> anyhow:
     for seed in seeds {
         let setup =
             GymSetup { seed, perturb: o.perturb.clone(), robot_config: o.robot_config.clone(), ..Default::default() };
-        let r = run::run(&skill, &RunOpts::new(&gym, setup))?;
+        let mut ro = RunOpts::new(&gym, setup);
+        ro.admission = true;
+        // Beside the library it judges, never among the user's own runs.
+        ro.out = Some(lib.dir.join("admission").join(format!("{}-v{:04}-seed{seed}", skill.id, skill.version)));
+        let r = run::run(&skill, &ro)?;
         report.runs.push(json!({"seed": seed, "success": r.success, "reason": r.stop_reason, "run_dir": r.run_dir}));
         runs.push(r);
     }

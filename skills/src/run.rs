@@ -24,11 +24,13 @@ pub struct RunOpts {
     pub wall_s: f64,
     /// Baseline only: rule id → a fixed TCP pose to play instead of binding the rule.
     pub absolute: Option<Value>,
+    /// An admission run: the skill is a candidate by design (not warned about).
+    pub admission: bool,
 }
 
 impl RunOpts {
     pub fn new(gym: &str, setup: GymSetup) -> Self {
-        Self { gym: gym.into(), setup, out: None, control_steps: 4000, wall_s: 300.0, absolute: None }
+        Self { gym: gym.into(), setup, out: None, control_steps: 4000, wall_s: 300.0, absolute: None, admission: false }
     }
 }
 
@@ -73,10 +75,21 @@ except FileNotFoundError:
 robo_skills.run_skill(skill, absolute=absolute)
 "#;
 
+/// A short name for a gym given by name, folder or scene file (`gyms/x/scene.toml` → `x`).
+fn gym_name(gym: &str) -> String {
+    let p = Path::new(gym);
+    let name = if p.file_name().is_some_and(|f| f == "scene.toml") {
+        p.parent().and_then(Path::file_name)
+    } else {
+        p.file_stem()
+    };
+    name.map_or_else(|| gym.replace('/', "_"), |n| n.to_string_lossy().into_owned())
+}
+
 /// What makes a run of `skill` on `o`'s gym weaker than a validated skill on its own robot.
 pub fn warnings(skill: &Skill, o: &RunOpts) -> Vec<String> {
     let mut w = Vec::new();
-    if skill.status != crate::format::Status::Validated {
+    if skill.status != crate::format::Status::Validated && !o.admission {
         w.push(format!(
             "{} v{} is {:?}, not validated: admission has not confirmed it",
             skill.id, skill.version, skill.status
@@ -107,8 +120,7 @@ pub fn run(skill: &Skill, o: &RunOpts) -> anyhow::Result<RunResult> {
         eprintln!("r2g skills run: warning: {w}");
     }
     let root = session::root();
-    let run_dir =
-        session::run_folder(o.out.as_deref(), "skills", &format!("{}-{}", skill.id, o.gym.replace('/', "_")))?;
+    let run_dir = session::run_folder(o.out.as_deref(), "skills", &format!("{}-{}", skill.id, gym_name(&o.gym)))?;
     let scratch = run_dir.join("scratch");
     std::fs::create_dir_all(&scratch)?;
     std::fs::write(scratch.join("skill.json"), serde_json::to_vec_pretty(skill)?)?;
