@@ -17,7 +17,7 @@ use sim_host::Scene;
 
 use crate::resample;
 
-#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Params {
     pub min_duration_s: f64,
     pub keyframe_margin_s: f64,
@@ -98,15 +98,6 @@ pub struct EventsFile {
     /// From the native grasps and contacts: the object up to each grasp, the support it ends on
     /// from each release, the thing pushed during a contact.
     pub anchors: Vec<Anchor>,
-}
-
-impl PartialEq for Params {
-    fn eq(&self, o: &Self) -> bool {
-        self.min_duration_s == o.min_duration_s
-            && self.keyframe_margin_s == o.keyframe_margin_s
-            && self.finger_still_m_s == o.finger_still_m_s
-            && self.timing_tolerance_s == o.timing_tolerance_s
-    }
 }
 
 /// The source's grasps from demonstration rows (gripper in column 8, −1 open … +1 closed).
