@@ -283,6 +283,8 @@ struct Parent {
     anchors: Vec<Anchor>,
     source: Vec<events::SourceGrasp>,
     source_kind: String,
+    /// The parent's native grasps: each variant must grasp as it did (`events.json`'s `native`).
+    grasps: Vec<events::Interval>,
     trace_sha256: String,
     object: String,
     /// A fixture the object starts in (a holder), moved along with it.
@@ -731,7 +733,7 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
         params: events::Params::default(),
         source_kind: format!("{} (from {})", parent.source_kind, parent.dir_name),
         source: parent.source.clone(),
-        native: Vec::new(),
+        native: parent.grasps.clone(),
         anchors: parent.anchors.clone(),
     };
     staging.write("events.json", &serde_json::to_vec_pretty(&events).map_err(|e| err(e.to_string()))?)?;
@@ -1057,10 +1059,10 @@ pub struct Report {
 /// Augments the gym at `scene_path` into the pool folder `o.out`.
 pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync)) -> Result<Report> {
     let started = Instant::now();
-    if o.out.exists() && std::fs::read_dir(&o.out).map(|mut d| d.next().is_some()).unwrap_or(true) {
-        return Err(Error::Output { path: o.out.clone(), why: "exists and is not empty; choose another --out".into() });
-    }
-    std::fs::create_dir_all(&o.out).map_err(Error::io(&o.out))?;
+    // The pool is built in a hidden sibling and renamed into place at the end: a failing parent
+    // or an I/O error leaves no pool, not part of one.
+    let staging = Staging::new(&o.out)?;
+    let pool_dir = staging.dir.clone();
     let scene = Scene::load(scene_path).map_err(|e| Error::Episode(e.into()))?;
     let dir_name =
         scene_path.parent().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
@@ -1070,7 +1072,7 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
     })?;
     // The parent must pass the gate itself; its native events give the motion's anchors.
     progress(&format!("validating the parent {dir_name}"));
-    let parent_out = o.out.join("parent");
+    let parent_out = pool_dir.join("parent");
     let (pev, _, native) = validate::validate_native(scene_path, &validate::Options::new(parent_out))?;
     if !pev.success {
         return Err(err(format!("the parent {} fails the gate: {}", scene_path.display(), failed_checks(&pev))));
@@ -1115,6 +1117,7 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
         anchors,
         source,
         source_kind,
+        grasps: pev.native_events.iter().filter(|e| e.kind == events::Kind::Grasp).cloned().collect(),
         trace_sha256: pev.trace_sha256.clone(),
         object,
         carrier,
@@ -1142,7 +1145,7 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
             plan[i].0.name(),
             plan[i].1.replace(['-', '+'], if plan[i].1.ends_with('-') { "lo" } else { "hi" })
         );
-        let r = run_candidate(&parent, name, p.clone(), 0, &o.out.join("sweeps"), &o.validator);
+        let r = run_candidate(&parent, name, p.clone(), 0, &pool_dir.join("sweeps"), &o.validator);
         gate_runs.fetch_add(r.attempts.len(), Ordering::Relaxed);
         (i, k, p, r)
     });
@@ -1242,7 +1245,7 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
     }
     progress(&format!("validating {} candidates on {} job(s)", candidates.len(), o.jobs));
     let outcomes = parallel(candidates, o.jobs, |(name, p)| {
-        let r = run_candidate(&parent, name, p, o.shrink_tries, &o.out, &o.validator);
+        let r = run_candidate(&parent, name, p, o.shrink_tries, &pool_dir, &o.validator);
         gate_runs.fetch_add(r.attempts.len(), Ordering::Relaxed);
         progress(&format!(
             "{}: {} after {} attempt(s)",
@@ -1304,12 +1307,11 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
         progress("rendering the contact sheet");
         // The parent first, then every kept variant.
         let scenes: Vec<PathBuf> = std::iter::once(scene_path.to_path_buf())
-            .chain(kept_names.iter().map(|n| o.out.join(n).join("scene.toml")))
+            .chain(kept_names.iter().map(|n| pool_dir.join(n).join("scene.toml")))
             .collect();
         let refs: Vec<&Path> = scenes.iter().map(PathBuf::as_path).collect();
-        let path = o.out.join("contact_sheet.png");
-        match crate::sheet::write(&refs, 8, &path) {
-            Ok(_) => contact_sheet = Some(path.display().to_string()),
+        match crate::sheet::write(&refs, 8, &pool_dir.join("contact_sheet.png")) {
+            Ok(_) => contact_sheet = Some(o.out.join("contact_sheet.png").display().to_string()),
             Err(e) => progress(&format!("no contact sheet: {e:#}")),
         }
     }
@@ -1342,8 +1344,9 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
         jobs: o.jobs,
     };
     lockstep::demo::write_atomic(
-        &o.out.join("report.json"),
+        &pool_dir.join("report.json"),
         &serde_json::to_vec_pretty(&report).map_err(|e| err(e.to_string()))?,
     )?;
+    staging.commit()?;
     Ok(report)
 }

@@ -8,7 +8,8 @@
 //!   link is `panda_link8` (no gripper offset). Our `link8`/`flange` frame is the same frame.
 //! - `observation/robot_state/gripper_position` (N,): 1 − width / max width of the Robotiq
 //!   2F-85 (0 open … 1 closed), measured; `action/gripper_position`, when present, is the
-//!   commanded value on the same scale and is preferred (a held object stops the measured one).
+//!   commanded value on the same scale and is preferred (a held object stops the measured one;
+//!   without a command, the import shuts the gripper over the measured opening's closed intervals).
 //! - `observation/robot_state/joint_positions` (N, 7), rad, Franka joint order.
 //! - `observation/timestamp/robot_state/robot_timestamp_{seconds,nanos}` (N,): the time base.
 //! - `observation/camera_extrinsics/<serial>_left` (N, 6): the left image's optical frame
@@ -27,7 +28,7 @@ use crate::{Error, Result};
 
 pub const CONVENTIONS: [&str; 6] = [
     "cartesian_position: xyz (m) + Euler 'xyz' extrinsic (R = Rz·Ry·Rx, rad) of panda_link8 (the flange) in panda_link0 -> flange pose quaternion xyzw in the base frame",
-    "gripper_position: 1 - width/max_width of the Robotiq 2F-85, 0 open .. 1 closed (action/gripper_position preferred: commanded) -> gripper_closed 0..1 as is; demo gripper = 2*closed - 1",
+    "gripper_position: 1 - width/max_width of the Robotiq 2F-85, 0 open .. 1 closed (action/gripper_position preferred: commanded) -> gripper_closed 0..1 as is; demo gripper = 2*closed - 1 from a command; from the measured opening +1 (shut) over its hysteresis-closed intervals (above 0.3, open below 0.15), 2*closed - 1 elsewhere",
     "joint_positions: rad, Franka joint order -> as is",
     "timestamp/robot_state: robot_timestamp_seconds + 1e-9*robot_timestamp_nanos -> seconds from the first frame",
     "camera_extrinsics/<serial>_left: xyz + Euler 'xyz' of the left optical frame (x right, y down, z forward) in panda_link0 -> base_from_optical quaternion xyzw",
@@ -132,7 +133,6 @@ pub fn read(
     let nanos = h5.column(NANOS, Some(n))?;
     // Seconds since the first frame, differenced before adding so no precision is lost.
     let stamps: Vec<f64> = secs.iter().zip(&nanos).map(|(s, ns)| (s - secs[0]) + 1e-9 * (ns - nanos[0])).collect();
-    let t0 = 0.0;
     let mut t_s = Vec::with_capacity(n);
     for (k, &s) in stamps.iter().enumerate() {
         if k > 0 && s <= stamps[k - 1] {
@@ -142,13 +142,13 @@ pub fn read(
                 Some(k),
                 format!(
                     "time does not increase: {:.6} s after {:.6} s at frame {} (timestamps must be strictly increasing)",
-                    s - t0,
-                    stamps[k - 1] - t0,
+                    s,
+                    stamps[k - 1],
                     k - 1
                 ),
             ));
         }
-        t_s.push(s - t0);
+        t_s.push(s);
     }
     for (k, g) in grip.iter().enumerate() {
         if !(-0.05..=1.05).contains(g) {
@@ -188,15 +188,17 @@ pub fn read(
     }
     // The FK gate: is the recorded pose the flange of this arm at these joints?
     let flange = robot.kin.flange;
-    let (mut max_p, mut sum_p, mut max_r, mut sum_r, mut worst) = (0.0f64, 0.0, 0.0f64, 0.0, 0);
+    let (mut max_p, mut sum_p, mut max_r, mut sum_r, mut worst, mut worst_past) = (0.0f64, 0.0, 0.0f64, 0.0, 0, -1.0);
     let mut base_from_flange = Vec::with_capacity(n);
     for (k, (q, c)) in joints_rad.iter().zip(&cart).enumerate() {
         let recorded = pose6(c);
         let ours = robot.kin.fk(q, flange);
         let dp = (ours.translation.vector - recorded.translation.vector).norm();
         let dr = ours.rotation.angle_to(&recorded.rotation);
-        if dp > max_p {
-            worst = k;
+        // The worst frame is the one furthest past the gate, in position or rotation.
+        let past = (dp / gate.position_m).max(dr / gate.rotation_rad);
+        if past > worst_past {
+            (worst, worst_past) = (k, past);
         }
         max_p = max_p.max(dp);
         max_r = max_r.max(dr);

@@ -17,7 +17,7 @@ use sim_host::Scene;
 
 use crate::resample;
 
-#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Params {
     pub min_duration_s: f64,
     pub keyframe_margin_s: f64,
@@ -98,15 +98,6 @@ pub struct EventsFile {
     /// From the native grasps and contacts: the object up to each grasp, the support it ends on
     /// from each release, the thing pushed during a contact.
     pub anchors: Vec<Anchor>,
-}
-
-impl PartialEq for Params {
-    fn eq(&self, o: &Self) -> bool {
-        self.min_duration_s == o.min_duration_s
-            && self.keyframe_margin_s == o.keyframe_margin_s
-            && self.finger_still_m_s == o.finger_still_m_s
-            && self.timing_tolerance_s == o.timing_tolerance_s
-    }
 }
 
 /// The source's grasps from demonstration rows (gripper in column 8, −1 open … +1 closed).
@@ -317,9 +308,14 @@ pub struct Timing {
 }
 
 /// `to_native`: a source time (demonstration time, row / rate) on the native clock.
+/// `recorded`: the native events recorded with the gym (its import's replay, or for a variant its
+/// parent's grasps). A source close after which the fingers shut on nothing is excused only when
+/// the recorded run held nothing there either (a close to push, say); with no recorded run (a
+/// hand-written demonstration) the demonstration is its own reference.
 pub fn timing(
     source: &[SourceGrasp],
     native: &[Interval],
+    recorded: Option<&[Interval]>,
     trace: &Trace,
     to_native: &dyn Fn(f64) -> f64,
     tolerance_s: f64,
@@ -328,10 +324,15 @@ pub fn timing(
     let nearest = |t: f64, pick: &dyn Fn(&Interval) -> f64| {
         grasps.iter().map(|g| pick(g)).min_by(|a, b| (a - t).abs().total_cmp(&(b - t).abs()))
     };
-    // Fingers fully shut within a second of the command, no grasp near: nothing was held.
+    let grasp_near = |events: &[Interval], t: f64| {
+        events.iter().any(|g| g.kind == Kind::Grasp && (g.onset_s - t).abs() <= tolerance_s)
+    };
+    // Fingers fully shut within a second of the command, no grasp near, and none in the
+    // recorded run: nothing was held, nor meant to be.
     let shut_on_nothing = |t: f64| {
         let shut = trace.samples.iter().any(|s| s.t_s >= t && s.t_s <= t + 1.0 && s.finger_m < 1e-3);
         shut && nearest(t, &|g| g.onset_s).is_none_or(|n| (n - t).abs() > tolerance_s)
+            && !recorded.is_some_and(|r| grasp_near(r, t))
     };
     let r = |v: f64| (v * 1e4).round() / 1e4;
     let mut t = Timing {
@@ -387,4 +388,56 @@ pub fn missing(recorded: &[Interval], now: &[Interval], tolerance_s: f64) -> Vec
         })
         .map(|r| format!("{:?} {}:{} at {:.2} s", r.kind, r.subject, r.other, r.onset_s).to_lowercase())
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sim_host::trace::Sample;
+
+    fn grasp_at(onset_s: f64) -> Interval {
+        Interval {
+            kind: Kind::Grasp,
+            subject: "block".into(),
+            other: "robot".into(),
+            onset_s,
+            offset_s: onset_s + 1.0,
+            keyframes: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn a_close_on_nothing_is_excused_only_when_the_recorded_run_held_nothing_there() {
+        // Fingers open, shut fully at 1 s and stay shut: nothing between them.
+        let samples = (0..300)
+            .map(|k| {
+                let t_s = k as f64 * 0.01;
+                Sample {
+                    t_s,
+                    objects: Vec::new(),
+                    joints: Vec::new(),
+                    tcp_m: [0.0; 3],
+                    finger_m: if t_s < 1.0 { 0.04 } else { 0.0 },
+                    contacts: Vec::new(),
+                    penetration_m: 0.0,
+                    penetration_pair: [0, 0],
+                }
+            })
+            .collect();
+        let trace = Trace { finger_max_m: 0.04, samples, ..Default::default() };
+        let source = [SourceGrasp { close_s: 0.9, open_s: Some(2.0) }];
+        let same = |t: f64| t;
+        // No recorded run (a hand-written demonstration), or one that held nothing: excused.
+        for recorded in [None, Some(&[][..])] {
+            let t = timing(&source, &[], recorded, &trace, &same, 0.5);
+            assert!(t.pass && t.closed_on_nothing == [0.9], "{recorded:?}: {t:?}");
+        }
+        // The recorded run (the parent) grasped there: shutting on nothing is a missed grasp.
+        let parent = [grasp_at(1.0)];
+        let t = timing(&source, &[], Some(&parent), &trace, &same, 0.5);
+        assert!(!t.pass && t.closed_on_nothing.is_empty(), "{t:?}");
+        // And a native grasp where the parent had one passes.
+        let t = timing(&source, &parent, Some(&parent), &trace, &same, 0.5);
+        assert!(t.pass, "{t:?}");
+    }
 }

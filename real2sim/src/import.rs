@@ -25,24 +25,23 @@ pub struct Imported {
     pub report: serde_json::Value,
 }
 
-fn load(scene_path: &Path) -> Result<(Scene, controllers::RobotModel, controllers::safety::SafetyChecks)> {
+/// The given scene, only read: one naming a demonstration that is not there (we write our own)
+/// is loaded from a copy without it in the staging folder, never beside the user's file.
+fn load(
+    scene_path: &Path,
+    staging: &Staging,
+) -> Result<(Scene, controllers::RobotModel, controllers::safety::SafetyChecks)> {
     let scene = Scene::load(scene_path).or_else(|e| {
-        // The given scene may name a demonstration that is not there: we write our own.
-        if e.to_string().contains("demonstration") {
-            let text = std::fs::read_to_string(scene_path).map_err(Error::io(scene_path))?;
-            let mut t: toml::Table = toml::from_str(&text).map_err(|e| Error::Episode(e.into()))?;
-            if let Some(task) = t.get_mut("task").and_then(|v| v.as_table_mut()) {
-                task.remove("demonstration");
-            }
-            let tmp = scene_path.with_file_name(format!(".scene-import-{}.toml", std::process::id()));
-            std::fs::write(&tmp, toml::to_string(&t).map_err(|e| Error::Episode(e.into()))?)
-                .map_err(Error::io(&tmp))?;
-            let s = Scene::load(&tmp);
-            let _ = std::fs::remove_file(&tmp);
-            s.map_err(|e| Error::Episode(e.into()))
-        } else {
-            Err(Error::Episode(e.into()))
+        if !e.to_string().contains("demonstration") {
+            return Err(Error::Episode(e.into()));
         }
+        let mut t = gym::rebased_scene(scene_path, &staging.dir)?;
+        if let Some(task) = t.get_mut("task").and_then(|v| v.as_table_mut()) {
+            task.remove("demonstration");
+        }
+        let copy =
+            staging.write("scene.toml", toml::to_string(&t).map_err(|e| Error::Episode(e.into()))?.as_bytes())?;
+        Scene::load(&copy).map_err(|e| Error::Episode(e.into()))
     })?;
     let (robot, safety) = runtime::scene_robot(scene_path)?;
     Ok((scene, robot, safety))
@@ -52,7 +51,7 @@ fn load(scene_path: &Path) -> Result<(Scene, controllers::RobotModel, controller
 #[allow(clippy::too_many_arguments)]
 fn write_gym(
     scene_path: &Path,
-    out: &Path,
+    staging: Staging,
     record: &Record,
     rows: &[[f64; 8]],
     start: Option<([f64; 7], f64)>,
@@ -60,7 +59,6 @@ fn write_gym(
     source_kind: &str,
     mut report: serde_json::Value,
 ) -> Result<Imported> {
-    let staging = Staging::new(out)?;
     let mut table = gym::rebased_scene(scene_path, &staging.dir)?;
     if let Some((q, g)) = start {
         if let Some(robot) = table.get_mut("robot").and_then(|r| r.as_table_mut()) {
@@ -103,21 +101,28 @@ fn write_gym(
 
 /// Imports a DROID episode folder.
 pub fn droid(episode: &Path, scene_path: &Path, out: &Path, gate: droid::FkGate) -> Result<Imported> {
-    let (scene, robot, safety) = load(scene_path)?;
+    let staging = Staging::new(out)?;
+    let (scene, robot, safety) = load(scene_path, &staging)?;
     let (record, fk) = droid::read(episode, &robot, &safety, gate)?;
     let Some(track) = &record.robot else { return Err(Error::Episode(anyhow::anyhow!("DROID record without robot"))) };
     let hz = scene.task.demonstration_hz;
     // Switch times from the source: a command is closed above 0.75 and open again below 0.5
     // (the demonstrations' +0.5 / 0 on the -1..1 scale); a measured opening stops at the object,
     // so there a rise above 0.3 closes and a fall below 0.15 opens.
-    let (on, off) = if track.gripper_source.starts_with("action/") { (0.75, 0.5) } else { (0.3, 0.15) };
+    let commanded = track.gripper_source.starts_with("action/");
+    let (on, off) = if commanded { (0.75, 0.5) } else { (0.3, 0.15) };
     let closed = resample::hysteresis(&track.gripper_closed, on, off);
     let plan = resample::plan(&record.t_s, &closed, hz);
+    // A command is replayed as it is. A measured opening is not a command: closed on an object
+    // it reads the object's width, and commanding that width would squeeze nothing; so over
+    // its closed intervals the gripper is commanded shut (+1), elsewhere it follows the opening.
+    let grip = |c: f64, shut: bool| if shut && !commanded { 1.0 } else { 2.0 * c - 1.0 };
     let frames: Vec<[f64; 8]> = track
         .joints_rad
         .iter()
         .zip(&track.gripper_closed)
-        .map(|(q, c)| [q[0], q[1], q[2], q[3], q[4], q[5], q[6], 2.0 * c - 1.0])
+        .zip(&closed)
+        .map(|((q, c), shut)| [q[0], q[1], q[2], q[3], q[4], q[5], q[6], grip(*c, *shut)])
         .collect();
     let rows = resample::apply(&plan, &frames);
     let source = events::grasps_of(&closed, &record.t_s);
@@ -139,7 +144,7 @@ pub fn droid(episode: &Path, scene_path: &Path, out: &Path, gate: droid::FkGate)
     });
     write_gym(
         scene_path,
-        out,
+        staging,
         &record,
         &rows,
         Some(([first[0], first[1], first[2], first[3], first[4], first[5], first[6]], first[7])),
@@ -169,7 +174,8 @@ pub fn egodex(
     registration: Option<&Path>,
     params: HandParams,
 ) -> Result<Imported> {
-    let (scene, robot, safety) = load(scene_path)?;
+    let staging = Staging::new(out)?;
+    let (scene, robot, safety) = load(scene_path, &staging)?;
     let given = registration.map(read_registration).transpose()?;
     let hand = egodex::read(episode, side, params.min_confidence)?;
     let hz = scene.task.demonstration_hz;
@@ -195,5 +201,5 @@ pub fn egodex(
         "demo_offset_s": r.offset_s,
         "scene": scene_path.display().to_string(),
     });
-    write_gym(scene_path, out, &r.record, &r.rows, None, source, "egodex hand aperture (hysteresis)", report)
+    write_gym(scene_path, staging, &r.record, &r.rows, None, source, "egodex hand aperture (hysteresis)", report)
 }

@@ -37,7 +37,7 @@ use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaterni
 use serde::Serialize;
 
 use crate::egodex::{self, HandInWorld};
-use crate::record::{HandTrack, Pose, Record, Registration, Source};
+use crate::record::{HandTrack, Record, Registration, Source};
 use crate::resample;
 use crate::{Error, Result};
 
@@ -409,6 +409,8 @@ pub struct HandReport {
     pub frames: usize,
     pub kept: usize,
     pub dropped_low_confidence: usize,
+    /// Confident frames dropped because thumb and index (or the knuckle) coincide: no pinch frame.
+    pub dropped_degenerate: usize,
     pub longest_gap_s: f64,
     pub close_below_m: f64,
     pub open_above_m: f64,
@@ -511,6 +513,7 @@ pub fn retarget(
     let offset_s = lead_in_rows as f64 / hz;
     let longest_gap_s = t_s.windows(2).map(|w| w[1] - w[0]).fold(0.0, f64::max);
     let kept = pin.frames.len();
+    let low_confidence = hand.confidence.iter().filter(|c| **c < p.min_confidence).count();
     let base_pts = |j: usize| -> Vec<[f64; 3]> {
         pin.frames
             .iter()
@@ -546,7 +549,8 @@ pub fn retarget(
         side: hand.side.clone(),
         frames: hand.points.len(),
         kept,
-        dropped_low_confidence: hand.points.len() - kept,
+        dropped_low_confidence: low_confidence,
+        dropped_degenerate: hand.points.len() - kept - low_confidence,
         longest_gap_s,
         close_below_m: pin.close_below_m,
         open_above_m: pin.open_above_m,
@@ -554,6 +558,5 @@ pub fn retarget(
         lifted_rows,
         switches_s: resample::switches(&pin.closed, &t_s).into_iter().map(|(t, s)| (t + offset_s, s)).collect(),
     };
-    let _ = Pose::from_iso;
     Ok(Retargeted { record, rows, offset_s, report })
 }

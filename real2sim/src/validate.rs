@@ -81,6 +81,8 @@ impl Options {
 #[derive(Debug, Clone, Serialize)]
 pub struct Evidence {
     pub gym: String,
+    /// The scene file, relative to the evidence's folder (so it stays right when a gym built in a
+    /// staging folder is renamed into place, or a pool is moved whole).
     pub scene: String,
     pub success: bool,
     pub checks: BTreeMap<String, Check>,
@@ -343,7 +345,14 @@ pub fn validate_native(scene_path: &Path, o: &Options) -> Result<(Evidence, Path
         None => (events::source_grasps(&rows, hz), "demonstration gripper column".to_string()),
     };
     let to_native = |t: f64| native_run.time_of_row(t * hz);
-    let timing = events::timing(&source, &native, trace, &to_native, o.events.timing_tolerance_s);
+    let timing = events::timing(
+        &source,
+        &native,
+        recorded.as_ref().map(|r| r.native.as_slice()),
+        trace,
+        &to_native,
+        o.events.timing_tolerance_s,
+    );
     let missing =
         recorded.as_ref().map(|r| events::missing(&r.native, &native, o.events.timing_tolerance_s)).unwrap_or_default();
     checks.insert(
@@ -359,9 +368,10 @@ pub fn validate_native(scene_path: &Path, o: &Options) -> Result<(Evidence, Path
     );
 
     let success = checks.values().all(|c| c.pass);
+    std::fs::create_dir_all(&o.out).map_err(Error::io(&o.out))?;
     let evidence = Evidence {
         gym: scene.name.clone(),
-        scene: scene_path.display().to_string(),
+        scene: crate::gym::relative_to(scene_path, &o.out).display().to_string(),
         success,
         checks,
         inputs,
@@ -374,7 +384,6 @@ pub fn validate_native(scene_path: &Path, o: &Options) -> Result<(Evidence, Path
         r2g_version: env!("CARGO_PKG_VERSION").into(),
         wall_s: started.elapsed().as_secs_f64(),
     };
-    std::fs::create_dir_all(&o.out).map_err(Error::io(&o.out))?;
     let path = o.out.join("evidence.json");
     lockstep::demo::write_atomic(&path, &serde_json::to_vec_pretty(&evidence).map_err(|e| Error::Episode(e.into()))?)?;
     if o.keep_trace {

@@ -74,6 +74,17 @@ fn the_gate_reproduces_its_trace_and_every_input_edit_changes_the_evidence() {
     assert!(!cut.success);
     assert!(!cut.checks["task_success"].pass, "{:?}", cut.checks["task_success"]);
     assert_ne!(cut.inputs["demonstration"], a.inputs["demonstration"]);
+
+    // Augmenting a parent that fails the gate: refused, and no pool, whole or partial, is left.
+    let pool = dir.join("pool");
+    let e = augment::augment(&scene, &augment::Options::new(pool.clone()), &|_: &str| {}).expect_err("failing parent");
+    assert!(e.to_string().contains("fails the gate"), "{e}");
+    let hidden: Vec<String> = std::fs::read_dir(&dir)
+        .expect("list")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .filter(|n| n == "pool" || n.starts_with(".pool"))
+        .collect();
+    assert!(hidden.is_empty(), "left behind: {hidden:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -90,12 +101,13 @@ fn augmentation_keeps_only_gate_passing_variants_with_an_adapted_demonstration()
     let r = augment::augment(&scene, &o, &|m: &str| eprintln!("augment: {m}")).expect("augment");
     eprintln!("feasible {:?}; per factor {:?}; kept {:?}", r.feasible, r.per_factor, r.kept);
     assert!(!r.kept.is_empty(), "{:?}", r.dropped);
-    let parent_trace = {
-        let ev: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(dir.join("pool/parent/evidence.json")).expect("parent"))
-                .expect("json");
-        ev["trace_sha256"].as_str().expect("trace").to_string()
-    };
+    let parent_ev: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("pool/parent/evidence.json")).expect("parent"))
+            .expect("json");
+    let parent_trace = parent_ev["trace_sha256"].as_str().expect("trace").to_string();
+    // The parent's evidence names its scene relative to itself, and it resolves after the pool's rename.
+    let parent_scene = dir.join("pool/parent").join(parent_ev["scene"].as_str().expect("scene"));
+    assert!(parent_scene.is_file(), "{}", parent_scene.display());
     let parent_demo = lockstep::read_demo(&root().join("gyms/pick_block_plate/demo.csv")).expect("demo");
     let mut saw_pose = false;
     for name in &r.kept {
@@ -106,6 +118,14 @@ fn augmentation_keeps_only_gate_passing_variants_with_an_adapted_demonstration()
         let ev: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(v.join("evidence.json")).expect("evidence")).expect("json");
         assert_eq!(ev["success"], true, "{name}");
+        assert_eq!(ev["scene"], "scene.toml", "{name}: the evidence names its scene beside it");
+        // The parent's grasps travel with the variant, so the gate checks they recur.
+        let events: real2sim::events::EventsFile =
+            serde_json::from_str(&std::fs::read_to_string(v.join("events.json")).expect("events")).expect("json");
+        assert!(
+            events.native.iter().any(|g| g.kind == real2sim::events::Kind::Grasp && g.subject == "block"),
+            "{name}: no parent grasp in events.json"
+        );
         let factors: Vec<String> = serde_json::from_value(variant["factors"].clone()).expect("factors");
         if factors == ["visual"] {
             assert_eq!(ev["trace_sha256"], parent_trace.as_str(), "{name}: visual only, the same physics");
@@ -125,6 +145,6 @@ fn augmentation_keeps_only_gate_passing_variants_with_an_adapted_demonstration()
     }
     let pose_sweeps = r.sweeps.iter().filter(|s| s["factor"] == "object_pose").count();
     assert!(pose_sweeps > 0 && r.feasible.contains_key("pose_xy_m"));
-    eprintln!("object pose among kept: {saw_pose}");
+    assert!(saw_pose, "no kept variant moved the object: the adaptation went unchecked");
     let _ = std::fs::remove_dir_all(&dir);
 }

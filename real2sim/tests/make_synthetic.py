@@ -1,6 +1,6 @@
 """SYNTHETIC test episodes in the DROID and EgoDex layouts, made from one of our gyms.
 
-    make_synthetic.py droid  --gym gyms/pick_block_plate --out DIR [--seed N] [--break KIND]
+    make_synthetic.py droid  --gym gyms/pick_block_plate --out DIR [--seed N] [--break KIND] [--no-action]
     make_synthetic.py egodex --gym gyms/pick_block_plate --out DIR [--seed N] [--break KIND]
 
 Everything written here is synthetic (generated from a gym's demonstration, not recorded),
@@ -18,8 +18,10 @@ Ground truth, noise, a non-identity ARKit offset and low-confidence frames go in
 point per frame for reprojection tests) and, for EgoDex, `registration.json` (the
 `--registration` file a user would give).
 
---break makes a bad file on purpose: missing_field, wrong_shape, nan, nonmonotonic (DROID),
-hand_never_seen (EgoDex), unreachable.
+--break makes a bad file on purpose: missing_field, wrong_shape, nan, nonmonotonic and rotated
+(DROID: the recorded flange turned at one frame), hand_never_seen (EgoDex), unreachable.
+EgoDex episodes always hold one confident frame with coinciding thumb and index tips. --no-action leaves out DROID's commanded
+`action/gripper_position` (a valid file: only the measured opening tells the gripper).
 """
 
 import argparse
@@ -101,7 +103,7 @@ def hold(t_new: np.ndarray, hz: float, values: np.ndarray) -> np.ndarray:
     return values[idx]
 
 
-def droid(gym: str, out: str, seed: int, brk: Optional[str]) -> None:
+def droid(gym: str, out: str, seed: int, brk: Optional[str], action: bool = True) -> None:
     rng = np.random.default_rng(seed)
     scene, rows, urdf = read_gym(gym)
     hz = float(scene["task"].get("demonstration_hz", 20.0))
@@ -124,6 +126,9 @@ def droid(gym: str, out: str, seed: int, brk: Optional[str]) -> None:
         cart[k, :3] = p
         cart[k, 3:] = r.as_euler("xyz")
     q_written = q + rng.normal(0.0, 1e-4, q.shape)
+    if brk == "rotated":
+        # The recorded flange turned 0.1 rad about x at frame 50 only, its position kept.
+        cart[50, 3:] = (Rotation.from_euler("xyz", cart[50, 3:]) * Rotation.from_rotvec([0.1, 0.0, 0.0])).as_euler("xyz")
     if brk == "unreachable":
         # Joint 4 past its upper limit (-0.0698 rad) from frame 40 on, the pose made to match.
         q_written[40:, 3] = 0.2
@@ -152,7 +157,8 @@ def droid(gym: str, out: str, seed: int, brk: Optional[str]) -> None:
             rs["cartesian_position"] = cart
         rs["gripper_position"] = measured
         rs["joint_velocities"] = np.gradient(q_written, t15, axis=0)
-        f["action/gripper_position"] = closed_cmd
+        if action:
+            f["action/gripper_position"] = closed_cmd
         ts = f.create_group("observation/timestamp/robot_state")
         ts["robot_timestamp_seconds"] = np.floor(stamps).astype(np.int64)
         ts["robot_timestamp_nanos"] = np.round((stamps - np.floor(stamps)) * 1e9).astype(np.int64)
@@ -244,6 +250,9 @@ def egodex(gym: str, out: str, seed: int, brk: Optional[str]) -> None:
         conf[name][low] = rng.uniform(0.0, 0.3, int(low.sum()))
         # Untracked frames carry garbage positions.
         pts[name][low, :3, 3] += rng.normal(0.0, 0.3, (int(low.sum()), 3))
+    # One confident frame whose thumb and index tips coincide (a tracking glitch): no pinch frame.
+    degenerate = int(np.nonzero(~low[n // 2 :])[0][0]) + n // 2
+    pts["ThumbTip"][degenerate, :3, 3] = pts["IndexFingerTip"][degenerate, :3, 3]
     if brk == "hand_never_seen":
         for name in pts:
             conf[name][:] = 0.05
@@ -298,6 +307,7 @@ def egodex(gym: str, out: str, seed: int, brk: Optional[str]) -> None:
             for k in range(n)
         ],
         "low_confidence_frames": [int(k) for k in np.nonzero(low)[0]],
+        "degenerate_frames": [degenerate],
     }
     with open(os.path.join(out, "truth.json"), "w") as fh:
         json.dump(truth, fh)
@@ -309,9 +319,13 @@ def main() -> None:
     ap.add_argument("--gym", required=True)
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--break", dest="brk", choices=["missing_field", "wrong_shape", "nan", "nonmonotonic", "hand_never_seen", "unreachable"])
+    ap.add_argument("--no-action", action="store_true", help="DROID: no action/gripper_position group")
+    ap.add_argument("--break", dest="brk", choices=["missing_field", "wrong_shape", "nan", "nonmonotonic", "rotated", "hand_never_seen", "unreachable"])
     a = ap.parse_args()
-    (droid if a.layout == "droid" else egodex)(a.gym, a.out, a.seed, a.brk)
+    if a.layout == "droid":
+        droid(a.gym, a.out, a.seed, a.brk, action=not a.no_action)
+    else:
+        egodex(a.gym, a.out, a.seed, a.brk)
 
 
 if __name__ == "__main__":
