@@ -191,7 +191,7 @@ fn a_recorded_conversation_replays_without_the_server() {
             retries: 0,
             cassette: Some(CassetteSpec { mode: CassetteMode::Replay, path: path.clone() }),
         };
-        let c = Client::new(replay).expect("replaying client");
+        let c = Client::new(replay.clone()).expect("replaying client");
         for (turns, l) in live.iter().enumerate() {
             let r = c.complete("system prompt", &conversation(turns)).expect("replayed");
             assert_eq!((&r.text, &r.usage, r.attempts), (&l.text, &l.usage, 0), "{provider} turn {turns}");
@@ -209,6 +209,13 @@ fn a_recorded_conversation_replays_without_the_server() {
         }
         assert_ne!(rgba, png());
         msgs[2].parts[1] = Part::Png(rgba);
+        // Each recorded answer is served once: the same request again is a miss, loudly.
+        match c.complete("system prompt", &msgs) {
+            Err(LlmError::Cassette(e)) => assert!(e.to_string().contains("recorded 1 time(s)"), "{e}"),
+            other => panic!("{provider}: a second ask must miss, got {:?}", other.map(|c| c.text)),
+        }
+        // From a fresh replay of the cassette, the same pixels are the same request.
+        let c = Client::new(replay).expect("replaying client");
         assert_eq!(c.complete("system prompt", &msgs).expect("same pixels").text, live[1].text);
         // Another system prompt is another request.
         match c.complete("system prompt!", &conversation(1)) {
