@@ -27,6 +27,9 @@ impl RayHead {
         cmd.args(["start", "--head", "--node-ip-address=127.0.0.1", &format!("--port={port}")])
             .arg(format!("--num-cpus={slots}"))
             .arg(format!("--resources={{\"r2g_gym\": {slots}}}"))
+            // Results are a few kB: a small object store starts at once (Ray's default maps
+            // 30 % of the machine's memory in /dev/shm).
+            .arg("--object-store-memory=209715200")
             .args(["--include-dashboard=false", "--block"])
             .env("RAY_USAGE_STATS_ENABLED", "0")
             // Ray on Linux turns 127.0.0.1 into the machine's address unless multi-node clusters

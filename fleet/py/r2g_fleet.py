@@ -183,8 +183,14 @@ def sweep() -> list[str]:
             facts = json.loads((d / "job.json").read_text())
             alive = _worker_alive(facts, boot)
         except FileNotFoundError:
-            # A job still writing its first facts, or a folder another sweep just claimed.
-            continue
+            # A job still writing its first facts, or a folder another sweep just claimed;
+            # one without facts for a minute lost its worker before it wrote them.
+            try:
+                if time.time() - d.stat().st_mtime < 60:
+                    continue
+            except OSError:
+                continue
+            facts, alive = {}, False
         except (OSError, ValueError, KeyError, TypeError):
             facts, alive = {}, False
         if alive:
@@ -222,11 +228,6 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
     tag = f"r2gj{uuid.uuid4().hex[:10]}"
     d = jobs_root() / tag
     d.mkdir(mode=0o700)
-    # A short root path: iceoryx2's event sockets live under it, and socket paths are short.
-    ipc_root = Path("/tmp") / tag
-    ipc_root.mkdir(mode=0o700)
-    config = d / "iceoryx2.toml"
-    config.write_text(f'[global]\nroot-path = "{ipc_root}/"\nprefix = "{tag}_"\n')
     me = _stat(os.getpid())
     facts: dict[str, Any] = {
         "job": job["id"],
@@ -237,7 +238,13 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
         "leader_start": 0,
         "prefix": f"{tag}_",
     }
+    # The facts first: from here on a sweep can tell whether this job's worker lives.
     _write_facts(d, facts)
+    # A short root path: iceoryx2's event sockets live under it, and socket paths are short.
+    ipc_root = Path("/tmp") / tag
+    ipc_root.mkdir(mode=0o700)
+    config = d / "iceoryx2.toml"
+    config.write_text(f'[global]\nroot-path = "{ipc_root}/"\nprefix = "{tag}_"\n')
     env = dict(os.environ, R2G_IPC_CONFIG=str(config))
     env.pop("RAY_ADDRESS", None)
     cwd = job.get("cwd")
@@ -328,7 +335,10 @@ def _ray(
         # Clusters started by `ray start` (2.5x and later) want a token by default; a driver on a
         # node that has one (copied there, see fleet/MULTINODE.md) presents it. Read at import.
         os.environ["RAY_AUTH_MODE"] = "token"
-    local = address == "auto" and _recorded_cluster() is None
+    if address == "auto":
+        # The cluster `auto` means, resolved once here (none answering: one of our own).
+        address = _recorded_cluster() or "local"
+    local = address == "local"
     if local or address.rpartition(":")[0] in ("127.0.0.1", "localhost", "[::1]"):
         # A cluster of this batch alone, or one on loopback: Ray on Linux advertises the
         # machine's address even when asked for 127.0.0.1, unless multi-node clusters are off
@@ -342,6 +352,9 @@ def _ray(
             address="local",
             _node_ip_address="127.0.0.1",
             resources={RESOURCE: node_capacity()},
+            # Results are a few kB: a small object store (Ray's default maps 30 % of memory
+            # in /dev/shm, slow to start on a loaded machine and taken from the gyms' budget).
+            object_store_memory=200 * 1024 * 1024,
             include_dashboard=False,
             log_to_driver=False,
         )

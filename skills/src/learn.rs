@@ -75,10 +75,14 @@ pub fn default_library() -> PathBuf {
 }
 
 /// The extraction endpoint when none is given: the episode's own, except that a scripted
-/// episode's extraction is answered by the gym's recorded extraction answers.
+/// episode's extraction is answered by the gym's recorded extraction answers, and a replayed
+/// episode's by the extraction recorded beside its cassette (`<run>/extraction-llm/`).
 pub fn extraction_llm(episode_llm: &str) -> String {
     if episode_llm == "scripted" || episode_llm.starts_with("scripted:") {
         "scripted".into()
+    } else if let Some(c) = episode_llm.strip_prefix("replay:") {
+        let dir = Path::new(c).parent().unwrap_or(Path::new("."));
+        format!("replay:{}", dir.join("extraction-llm").join("cassette.jsonl").display())
     } else {
         episode_llm.to_string()
     }
@@ -237,7 +241,8 @@ fn seed_job(o: &EpisodeOpts, seed: u64, learn_opts: &LearnOpts, out: &Path, libr
     ];
     a.extend(session::episode_flags(&e));
     a.extend(["--out".into(), out.display().to_string(), "--library".into(), library.display().to_string()]);
-    a.extend(["--learn-llm".into(), learn_opts.llm.clone(), "--seed".into(), seed.to_string()]);
+    // (--seed came with the episode's flags: given once.)
+    a.extend(["--learn-llm".into(), learn_opts.llm.clone()]);
     match &learn_opts.admit {
         Some(ad) => {
             a.extend(["--admit-runs".into(), ad.seeds.len().to_string(), "--admit-share".into(), ad.share.to_string()]);
@@ -250,15 +255,44 @@ fn seed_job(o: &EpisodeOpts, seed: u64, learn_opts: &LearnOpts, out: &Path, libr
     a
 }
 
-/// Copies the skill versions of `from` (if any) into a fresh `to`: the library a seed starts with.
+/// Copies the library `from` (if any) into a fresh `to`, the library a seed starts with: every
+/// skill's version files and the event log, with their modification times (the cap's "unused
+/// longest" reads them); admission run folders stay behind.
 fn seed_library(from: &Path, to: &Path) -> anyhow::Result<()> {
+    fn copy(src: &Path, dst: &Path) -> anyhow::Result<()> {
+        std::fs::copy(src, dst).with_context(|| format!("copying {} to {}", src.display(), dst.display()))?;
+        if let Ok(t) = std::fs::metadata(src).and_then(|m| m.modified()) {
+            std::fs::File::options().write(true).open(dst).and_then(|f| f.set_modified(t))?;
+        }
+        Ok(())
+    }
     std::fs::create_dir_all(to)?;
     let Ok(rd) = std::fs::read_dir(from) else { return Ok(()) };
-    for d in rd.flatten().filter(|e| e.file_type().is_ok_and(|t| t.is_dir())) {
-        let dst = to.join(d.file_name());
+    for e in rd.flatten() {
+        let (name, is_dir) = (e.file_name(), e.file_type().is_ok_and(|t| t.is_dir()));
+        if !is_dir {
+            if name == "events.jsonl" {
+                copy(&e.path(), &to.join(&name))?;
+            }
+            continue;
+        }
+        if name == "admission" {
+            continue;
+        }
+        let versions: Vec<_> = std::fs::read_dir(e.path())?
+            .flatten()
+            .filter(|f| {
+                let n = f.file_name().to_string_lossy().into_owned();
+                n.starts_with('v') && n.ends_with(".json") && f.file_type().is_ok_and(|t| t.is_file())
+            })
+            .collect();
+        if versions.is_empty() {
+            continue;
+        }
+        let dst = to.join(&name);
         std::fs::create_dir_all(&dst)?;
-        for f in std::fs::read_dir(d.path())?.flatten() {
-            std::fs::copy(f.path(), dst.join(f.file_name()))?;
+        for f in versions {
+            copy(&f.path(), &dst.join(f.file_name()))?;
         }
     }
     Ok(())
@@ -300,10 +334,13 @@ pub fn protocol(
     if let Some(b) = backend {
         let mut jobs = Vec::new();
         for i in 0..episodes {
+            // The job runs the protocol on one seed into <out>/seed-NNN: it copies the
+            // library itself (into <out>/seed-NNN/seed-000/library) and learns there.
             let out = dir.join(format!("seed-{i:03}"));
-            let lib = out.join("library");
-            seed_library(&learn_opts.library, &lib)?;
-            jobs.push(fleet::Job { id: i as usize, args: seed_job(o, seed_of(i), learn_opts, &out.join("run"), &lib) });
+            jobs.push(fleet::Job {
+                id: i as usize,
+                args: seed_job(o, seed_of(i), learn_opts, &out, &learn_opts.library),
+            });
         }
         let mut got: Vec<(u64, Value)> = Vec::new();
         fleet::run(&jobs, b, &dir, |r| {
@@ -392,7 +429,9 @@ pub fn protocol(
         .chain(learned.iter().map(|l| &l["llm_source"]))
         .filter_map(|v| v.as_str().map(str::to_string))
         .collect();
-    let label = if sources.iter().all(|s| s == "live") {
+    let label = if sources.is_empty() {
+        "no episode ran".to_string()
+    } else if sources.iter().all(|s| s == "live") {
         "a live model in every episode and extraction".to_string()
     } else if sources.iter().all(|s| s == "scripted") {
         "mechanics only: the scripted endpoint replays recorded conversations and extraction answers (synthetic, written by us), not a model".to_string()
@@ -400,7 +439,8 @@ pub fn protocol(
         format!("mixed sources ({}): not a model's figures", sources.into_iter().collect::<Vec<_>>().join(", "))
     };
     let summary = json!({
-        "gym": gym, "episodes": rows.len(), "library": dir.join("seed-NNN/library"), "label": label,
+        "gym": gym, "episodes": rows.len(), "label": label,
+        "libraries": rows.iter().map(|r| r["library"].clone()).collect::<Vec<_>>(),
         "without_skills": without, "with_skills": with,
         "extraction": {"ran": learned.len(), "tokens_in_mean": learned.iter().map(|l| l["tokens_in"].as_f64().unwrap_or(0.0)).sum::<f64>() / ln,
                        "tokens_out_mean": learned.iter().map(|l| l["tokens_out"].as_f64().unwrap_or(0.0)).sum::<f64>() / ln},
@@ -410,4 +450,56 @@ pub fn protocol(
     std::fs::write(&tmp, serde_json::to_vec_pretty(&summary)?)?;
     std::fs::rename(&tmp, dir.join("batch.json"))?;
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_seed_library_copies_versions_and_events_with_their_times_and_leaves_admission_runs() {
+        let base = std::env::temp_dir().join(format!("r2g-seedlib-{}", std::process::id()));
+        let (from, to) = (base.join("from"), base.join("to"));
+        std::fs::create_dir_all(from.join("a-skill")).expect("mkdir");
+        std::fs::create_dir_all(from.join("admission/a-skill-v0001-seed90001/logs")).expect("mkdir");
+        std::fs::write(from.join("a-skill/v0001.json"), "{}").expect("write");
+        std::fs::write(from.join("events.jsonl"), "{}\n").expect("write");
+        let hour_ago = std::time::SystemTime::now() - std::time::Duration::from_secs(3600);
+        std::fs::File::options()
+            .write(true)
+            .open(from.join("a-skill/v0001.json"))
+            .and_then(|f| f.set_modified(hour_ago))
+            .expect("mtime");
+        seed_library(&from, &to).expect("a library with admission runs copies");
+        assert!(to.join("a-skill/v0001.json").is_file() && to.join("events.jsonl").is_file());
+        assert!(!to.join("admission").exists());
+        let t = std::fs::metadata(to.join("a-skill/v0001.json")).and_then(|m| m.modified()).expect("mtime");
+        assert_eq!(t, hour_ago, "the copy keeps when the version was written");
+        let _ = std::fs::remove_dir_all(&base);
+    }
+
+    #[test]
+    fn a_seed_job_names_its_seed_once() {
+        let o = EpisodeOpts {
+            gym: "pick_block_plate".into(),
+            llm: "scripted".into(),
+            provider: "openai".into(),
+            max_decisions: 50,
+            control_steps: 600,
+            wall: false,
+            out: None,
+            robot_config: None,
+            wall_s: 120.0,
+            memory: None,
+            seed: 0,
+            perturb: Some("xy=0.05,yaw=30".into()),
+            skills: None,
+            library: None,
+        };
+        let lo = LearnOpts::new(PathBuf::from("/lib"), "scripted");
+        let args = seed_job(&o, 7, &lo, Path::new("/out/seed-003"), Path::new("/lib"));
+        assert_eq!(args.iter().filter(|a| *a == "--seed").count(), 1, "{args:?}");
+        let at = args.iter().position(|a| a == "--seed").expect("--seed");
+        assert_eq!(args[at + 1], "7");
+    }
 }

@@ -369,6 +369,14 @@ fn apply_one(
                 }],
             };
             if let Some(p) = &parent {
+                if let Some(k) =
+                    s.applicability.context.keys().find(|k| p.applicability.context.contains_key(&format!("not_{k}")))
+                {
+                    // The parent's negation of one value per key is all selection can check.
+                    return Err(format!(
+                        "the parent already gave its '{k}' context to another skill: split that skill, or the parent on another key"
+                    ));
+                }
                 if s.applicability.context.is_empty() || s.applicability.context == p.applicability.context {
                     return Err(
                         "a split names a context (object_classes or instruction) other than its parent's".into()

@@ -18,6 +18,7 @@ import pytest
 from conftest import R2G, ROOT
 
 RAY = ROOT / ".venv" / "bin" / "ray"
+OBJECT_STORE_BYTES = 200 * 1024 * 1024
 LOOPBACK = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
 """Ray on Linux turns --node-ip-address=127.0.0.1 into the machine's address unless multi-node
 clusters are off: the head, the batch's driver and the workers stay on loopback."""
@@ -69,16 +70,18 @@ def ray_head(tmp_path: Path):
     log = tmp_path / "ray-head.log"
     head = subprocess.Popen(
         [str(RAY), "start", "--head", "--node-ip-address=127.0.0.1", f"--port={port}", "--num-cpus=2",
+         # Results are a few kB: a small object store starts at once (Ray's default maps 30 % of
+         # the machine's memory in /dev/shm, which on a loaded machine outlasted the start-up).
+         f"--object-store-memory={OBJECT_STORE_BYTES}",
          '--resources={"r2g_gym": 2}', "--include-dashboard=false", "--block"],
         env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT, start_new_session=True,
     )
     try:
+        # Up when `ray start` says so (its GCS port opens before the node has started).
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            with socket.socket() as s:
-                if s.connect_ex(("127.0.0.1", port)) == 0:
-                    break
-            assert head.poll() is None, "ray start exited"
+        while "Ray runtime started" not in log.read_text(errors="replace"):
+            assert head.poll() is None, f"ray start exited: {log.read_text(errors='replace')[-2000:]}"
+            assert time.monotonic() < deadline, f"ray start: not up in 120 s: {log.read_text(errors='replace')[-2000:]}"
             time.sleep(0.5)
         # The node advertises loopback, not the machine's address.
         assert "Local node IP: 127.0.0.1" in log.read_text(errors="replace"), log.read_text(errors="replace")[-2000:]
