@@ -54,6 +54,29 @@ pub struct EpisodeOpts {
     pub library: Option<PathBuf>,
 }
 
+impl EpisodeOpts {
+    /// An episode of `gym` answered by `llm` with the command line's defaults (50 decisions,
+    /// 600 control steps, lockstep, 120 s per program, seed 0, nothing else).
+    pub fn new(gym: &str, llm: &str) -> Self {
+        Self {
+            gym: gym.into(),
+            llm: llm.into(),
+            provider: "openai".into(),
+            max_decisions: 50,
+            control_steps: 600,
+            wall: false,
+            out: None,
+            robot_config: None,
+            wall_s: 120.0,
+            memory: None,
+            seed: 0,
+            perturb: None,
+            skills: None,
+            library: None,
+        }
+    }
+}
+
 /// The repo's scripted LLM server, replaying a recorded conversation; stopped on drop.
 pub struct Scripted {
     child: Child,
@@ -479,20 +502,10 @@ mod tests {
 
     fn opts(seed: u64) -> EpisodeOpts {
         EpisodeOpts {
-            gym: "pick_block_plate".into(),
-            llm: "scripted".into(),
-            provider: "openai".into(),
-            max_decisions: 50,
-            control_steps: 600,
-            wall: false,
-            out: None,
-            robot_config: None,
-            wall_s: 120.0,
-            memory: None,
             seed,
             perturb: Some("xy=0.05,yaw=30".into()),
-            skills: None,
             library: Some(PathBuf::from("lib")),
+            ..EpisodeOpts::new("pick_block_plate", "scripted")
         }
     }
 

@@ -480,22 +480,8 @@ mod tests {
 
     #[test]
     fn a_seed_job_names_its_seed_once() {
-        let o = EpisodeOpts {
-            gym: "pick_block_plate".into(),
-            llm: "scripted".into(),
-            provider: "openai".into(),
-            max_decisions: 50,
-            control_steps: 600,
-            wall: false,
-            out: None,
-            robot_config: None,
-            wall_s: 120.0,
-            memory: None,
-            seed: 0,
-            perturb: Some("xy=0.05,yaw=30".into()),
-            skills: None,
-            library: None,
-        };
+        let o =
+            EpisodeOpts { perturb: Some("xy=0.05,yaw=30".into()), ..EpisodeOpts::new("pick_block_plate", "scripted") };
         let lo = LearnOpts::new(PathBuf::from("/lib"), "scripted");
         let args = seed_job(&o, 7, &lo, Path::new("/out/seed-003"), Path::new("/lib"));
         assert_eq!(args.iter().filter(|a| *a == "--seed").count(), 1, "{args:?}");
