@@ -86,6 +86,8 @@ def test_relate_then_bind_gives_the_target_back() -> None:
     "g = list(here)\ng[0], g[1] = 0.5, 0.1\n",          # a tuple assignment sets coordinates too
     "g = list(here)\ng[2] = 0.1 + 0.2\n",
     "rule = dict(offset_m=[0.5, 0.2, 0.3])\n",           # 0.62 m: a position, not an offset
+    "t = [0.3] * 3\n",                                    # repetition builds a fixed position
+    "t = np.zeros(3) + [0.5, 0.0, 0.3]\n",              # a constructor of numbers is a constant
 ])
 def test_the_lint_refuses_base_frame_numbers_on_the_parsed_code(code: str) -> None:
     with pytest.raises(rs.LintError, match="line"):

@@ -49,11 +49,20 @@ def _number(n: ast.AST) -> float | None:
     return None
 
 
+CONSTRUCTORS = {"zeros", "ones", "full", "array", "asarray"}
+"""numpy calls whose result is fixed when their arguments are numbers."""
+
+
 def _constant(n: ast.AST) -> bool:
-    """Whether ``n`` is made of numbers only (a number, a literal pose, sums of them)."""
+    """Whether ``n`` is made of numbers only: a number, a literal sequence of numbers (also
+    repeated, ``[0.3] * 3``), a numpy constructor of numbers (``np.zeros(3)``), sums of them."""
     if _number(n) is not None or _literal_pose(n) is not None:
         return True
-    if isinstance(n, ast.BinOp) and isinstance(n.op, (ast.Add, ast.Sub)):
+    if isinstance(n, (ast.List, ast.Tuple)):
+        return all(_number(e) is not None for e in n.elts)
+    if isinstance(n, ast.Call) and getattr(n.func, "attr", getattr(n.func, "id", "")) in CONSTRUCTORS:
+        return all(_constant(a) for a in n.args) and all(_constant(k.value) for k in n.keywords)
+    if isinstance(n, ast.BinOp) and isinstance(n.op, (ast.Add, ast.Sub, ast.Mult)):
         return _constant(n.left) and _constant(n.right)
     return False
 
@@ -81,6 +90,8 @@ class _Linter(ast.NodeVisitor):
             self.allowed.add(id(n.args[0]))
 
     def visit_BinOp(self, node: ast.BinOp) -> None:
+        if isinstance(node.op, ast.Mult):
+            self.visit_BinOp_repeat(node)
         if isinstance(node.op, (ast.Add, ast.Sub)):
             # A difference moves something measured; constant + constant is a fixed position.
             if not _constant(node.right):
@@ -129,6 +140,19 @@ class _Linter(ast.NodeVisitor):
             self.allowed.add(id(node))  # said once
             if isinstance(node, ast.Call) and node.args:
                 self.allowed.add(id(node.args[0]))
+
+    def visit_BinOp_repeat(self, node: ast.BinOp) -> None:
+        """``[0.3, 0.1] * 3``-style repetition: a fixed sequence of pose length."""
+        seq, times = (node.left, node.right) if isinstance(node.left, (ast.List, ast.Tuple)) else (node.right, node.left)
+        k = _number(times)
+        if isinstance(seq, (ast.List, ast.Tuple)) and k is not None and k == int(k):
+            vals = [_number(e) for e in seq.elts]
+            if vals and all(v is not None for v in vals) and len(vals) * int(k) in POSE_LENGTHS \
+                    and id(node) not in self.allowed and not all(v in (0.0, 1.0, -1.0) for v in vals):
+                self.problems.append(
+                    f"line {node.lineno}: {[round(v, 4) for v in vals if v is not None]} * {int(k)} builds a fixed "
+                    "base-frame position; bind a rule to the object seen now instead")
+                self.allowed.update({id(node), id(seq)})
 
     def visit_List(self, node: ast.List) -> None:
         self._literal(node)
