@@ -29,20 +29,10 @@ pub fn run(episodes: u32) -> anyhow::Result<Value> {
         // The instance's processes inherit it: the baseline is the whole host path as it was.
         std::env::set_var("R2G_HOST_BASELINE", if prestart { "0" } else { "1" });
         let o = EpisodeOpts {
-            gym: gym.into(),
-            llm: "scripted".into(),
             provider: if (i / 2) % 2 == 0 { "openai" } else { "anthropic" }.into(),
-            max_decisions: 50,
-            control_steps: 600,
-            wall: false,
             out: Some(dir.join(format!("episode-{i}"))),
-            robot_config: None,
-            wall_s: 120.0,
             memory: Some(dir.join("memory")),
-            seed: 0,
-            perturb: None,
-            skills: None,
-            library: None,
+            ..EpisodeOpts::new(gym, "scripted")
         };
         let r = session::episode(&o)?;
         if !r.success {

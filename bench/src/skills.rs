@@ -26,20 +26,9 @@ pub struct Options {
 
 fn record_of(gym: &str, out: &Path) -> anyhow::Result<PathBuf> {
     let o = EpisodeOpts {
-        gym: gym.into(),
-        llm: "scripted".into(),
-        provider: "openai".into(),
-        max_decisions: 50,
-        control_steps: 600,
-        wall: false,
         out: Some(out.join(format!("{gym}-episode"))),
-        robot_config: None,
-        wall_s: 120.0,
         memory: Some(out.join("memory")),
-        seed: 0,
-        perturb: None,
-        skills: None,
-        library: None,
+        ..EpisodeOpts::new(gym, "scripted")
     };
     let r = session::episode(&o)?;
     if !r.success {
