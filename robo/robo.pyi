@@ -126,6 +126,15 @@ class Calibration(TypedDict):
     tcp: TcpCalibration
     cameras: dict[str, CameraCalibration]
 
+class Setup(TypedDict, total=False):
+    """What the runtime was started with (empty until it has published its limits)."""
+
+    gym: Optional[str]
+    """The gym (the scene's folder name)."""
+    robot_config_sha256: Optional[str]
+    """SHA-256 (hex) of the bytes of the robot configuration file in force; None: the runtime
+    runs on its built-in defaults."""
+
 class _StateBase(TypedDict):
     joint: list[float]
     """7 measured joint positions, rad."""
@@ -158,6 +167,8 @@ class _StateBase(TypedDict):
     calibration: Calibration
     """Sources of the TCP and camera calibrations; a camera named in config/robot.json whose
     file is missing or invalid reads {"source": "missing", "reason": ...}."""
+    setup: Setup
+    """The gym and robot configuration in force; memory records are keyed by it."""
 
 class State(_StateBase):
     """get_state() with raw=False."""

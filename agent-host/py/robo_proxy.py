@@ -21,7 +21,7 @@ import sys
 
 import robo
 
-ALLOWED = {"reset", "get_state", "post_actions", "instance", "perception"}
+ALLOWED = {"reset", "get_state", "post_actions", "instance", "schema_version", "perception"}
 CALLS_KEPT = 500  # reset/post_actions calls logged per program for the run record
 FRAMES_KEPT = 4  # raw frames remembered per camera for perception requests...
 FRAMES_BYTES = 64 << 20  # ...within this many bytes in all
@@ -49,6 +49,11 @@ class Session:
         self.calls = 0
         self.refused = 0
         self.override: dict | None = None
+        # The program's own robot calls, for the host's feedback: chunks by outcome, resets, and
+        # the last reset/post_actions (status and reason as the program's control_feedback had them).
+        self.chunks = {"executed": 0, "failed": 0, "rejected": 0}
+        self.resets = {"done": 0, "refused": 0}
+        self.last: dict | None = None
         # What the program asked of the robot and what came of it (the run record's calls.json;
         # skill extraction reads the targets of successful rounds from it).
         self.calls_log: list[dict] = []
@@ -85,12 +90,23 @@ class Session:
             )
         return {"image": s["image"][camera], "depth": s["depth"][camera], "intrinsics": s["camera_intrinsics"][camera]}
 
-    def refuse(self, reason: str) -> int:
+    def refuse(self, fn: str, reason: str) -> int:
         self.refused += 1
         fb = robo.get_state([])["control_feedback"]
         fb.update(status="rejected", reason=reason, executed=0, request_id=0, submit_to_accept_us=None, submit_to_first_motion_us=None)
         self.override = fb
+        self.outcome(fn, fb)
         return 0
+
+    def outcome(self, fn: str, fb: dict) -> None:
+        """Counts one reset/post_actions of the program by its feedback and keeps it as the last."""
+        status = fb.get("status")
+        if fn == "reset":
+            self.resets["refused" if status == "rejected" else "done"] += 1
+        else:
+            kind = status if status in ("executed", "rejected") else "failed"
+            self.chunks[kind] += 1
+        self.last = {"fn": fn, **{k: fb.get(k) for k in ("status", "reason", "executed")}}
 
     def call(self, req: dict) -> object:
         fn, args, kwargs = req.get("fn"), req.get("args", []), req.get("kwargs", {})
@@ -99,6 +115,8 @@ class Session:
         self.calls += 1
         if fn == "instance":
             return robo.instance()
+        if fn == "schema_version":
+            return robo.SCHEMA_VERSION
         if fn == "get_state":
             cams = args[0] if args else kwargs.pop("cameras", None)
             if isinstance(cams, (list, dict)) and len(cams) > 16:
@@ -118,26 +136,36 @@ class Session:
                 raise TypeError("perception(op, payload)")
             return services().serve_proxy(args[0], args[1], self.camera_frame)
         if self.observe_only:
-            return self.refuse("this turn is observation-only: reset() and post_actions() are not allowed yet")
+            return self.refuse(fn, "this turn is observation-only: reset() and post_actions() are not allowed yet")
         if fn == "reset":
             self.override = None
             self.frames.clear()  # simulated time starts again: old timestamps would match anew
+            t_before = robo.get_state([])["timestamp"]
             r = robo.reset()
-            self.log({"fn": "reset", "result": r, "t_after": robo.get_state([])["timestamp"]})
+            after = robo.get_state([])
+            self.outcome("reset", after["control_feedback"])
+            self.log({"fn": "reset", "result": r, "t_before": t_before, "t_after": after["timestamp"]})
             return r
         cmd = args[0] if args else None
         n = len(cmd.get("actions", [])) if isinstance(cmd, dict) and isinstance(cmd.get("actions"), list) else 0
         if self.steps + n > self.budget:
             return self.refuse(
+                fn,
                 f"control-step budget spent: this program has used {self.steps} of {self.budget} waypoints and this "
                 f"chunk has {n}; end the program, observe, and continue in the next decision"
             )
         self.override = None
         t_before = robo.get_state([])["timestamp"]
-        r = robo.post_actions(cmd)
+        try:
+            r = robo.post_actions(cmd)
+        except Exception as e:  # a malformed command: nothing reached the runtime
+            self.chunks["rejected"] += 1
+            self.last = {"fn": fn, "status": "refused by robo", "reason": f"{type(e).__name__}: {e}", "executed": 0}
+            raise
         self.steps += n
         after = robo.get_state([])
         fb = after["control_feedback"]
+        self.outcome(fn, fb)
         entry = {"fn": "post_actions", "result": r, "t_before": t_before, "t_after": after["timestamp"],
                  "feedback": {k: fb.get(k) for k in ("status", "reason", "executed")}}
         if isinstance(cmd, dict):
@@ -223,11 +251,15 @@ def main() -> int:
                     sess.budget = int(cmd.get("budget", 600))
                     sess.observe_only = bool(cmd.get("observe_only", False))
                     sess.steps = sess.calls = sess.refused = 0
+                    sess.chunks = dict.fromkeys(sess.chunks, 0)
+                    sess.resets = dict.fromkeys(sess.resets, 0)
+                    sess.last = None
                     sess.calls_log = []
                     print(json.dumps({"ok": True}), flush=True)
                 elif cmd.get("cmd") == "end":
-                    print(json.dumps({"steps": sess.steps, "calls": sess.calls, "refused": sess.refused,
-                                      "log": sess.calls_log}), flush=True)
+                    print(json.dumps(_strict({"steps": sess.steps, "calls": sess.calls, "refused": sess.refused,
+                                              "chunks": sess.chunks, "resets": sess.resets, "last": sess.last,
+                                              "log": sess.calls_log})), flush=True)
                 elif cmd.get("cmd") == "observe":
                     print(json.dumps(observe(bool(cmd.get("images", True)), cmd.get("raw"))), flush=True)
                 elif cmd.get("cmd") == "reset":

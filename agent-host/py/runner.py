@@ -4,6 +4,8 @@ ended, and exits; every program gets a fresh confined process. Started by `r2g-s
 it offers is the forwarding shim next to this file, not the real extension."""
 from __future__ import annotations
 
+import importlib.abc
+import importlib.machinery
 import io
 import json
 import os
@@ -83,10 +85,49 @@ def run(code: str, name: str) -> dict:
     return result
 
 
+# What a stage program may import (the answer format says the same, agent-host/src/prompt.rs):
+# these, the standard library, and modules the program itself saved in its scratch folder.
+SUPPORTED = ("robo", "robo_perception", "robo_skills", "robo_services", "robo_memory", "numpy")
+
+
+class OnlySupported(importlib.abc.MetaPathFinder):
+    """Refuses, with a clear ImportError, any other package the interpreter's environment holds
+    (it is there for the host, not for programs). Not a security boundary: the sandbox is."""
+
+    def __init__(self, scratch: str) -> None:
+        import sysconfig
+
+        self.scratch = os.path.realpath(scratch) + os.sep
+        # The standard library's own folders (private modules such as _sysconfigdata_* are not
+        # in sys.stdlib_module_names), never a site-packages folder.
+        self.stdlib = tuple({os.path.realpath(sysconfig.get_paths()[k]) + os.sep for k in ("stdlib", "platstdlib")})
+
+    def allowed(self, origin: str) -> bool:
+        real = os.path.realpath(origin)
+        if real.startswith(self.scratch):
+            return True  # the program's own module, saved in the scratch folder
+        return real.startswith(self.stdlib) and "-packages" + os.sep not in real
+
+    def find_spec(self, name: str, path: object = None, target: object = None) -> None:
+        top = name.partition(".")[0]
+        if path is not None or top in SUPPORTED or top in sys.stdlib_module_names:
+            return None  # a submodule of an imported package, or allowed: the normal finders
+        spec = importlib.machinery.PathFinder.find_spec(name)
+        if spec is not None and spec.origin and self.allowed(spec.origin):
+            return None
+        raise ModuleNotFoundError(
+            f"No module named {name!r} for stage programs: they may import "
+            f"{', '.join(SUPPORTED)}, the Python standard library and their own modules in the scratch folder",
+            name=name,
+        )
+
+
 def main() -> int:
     sys.path = [p for p in sys.path if p not in ("", ".")]
     sys.path.insert(0, os.path.join(HERE, "lib"))  # robo_perception
     sys.path.insert(0, os.path.join(HERE, "shim"))  # robo
+    sys.path.append(os.getcwd())  # the program's own modules, after everything they must not shadow
+    sys.meta_path.insert(0, OnlySupported(os.getcwd()))
     ctl = socket.socket(fileno=3)
     msg = recv(ctl)
     if msg is None:

@@ -25,9 +25,11 @@ with the error JSON of that API (OpenAI ``{"error": {...}}``, Anthropic
 ``{"type": "error", "error": {...}}``); unknown paths get a 404 in the same shapes.
 
 Usage is simulated: tokens = ceil(characters / 4) of each message's text + 800 per image
-(the system prompt counts as the first message). The longest prefix of this request's messages
-that equals the previous successful request's messages (of the same API; ``cache_control``
-markers ignored) counts as cached: OpenAI reports it in ``prompt_tokens_details.cached_tokens``
+(the system prompt counts as the first message). What a provider's prompt cache would serve counts
+as cached: for OpenAI, the longest prefix of this request's messages that equals the previous
+successful request's (OpenAI-compatible servers cache by themselves); for Anthropic, only such a
+prefix that ends where the previous request put a ``cache_control`` mark, when this request marks
+one at or after it (Anthropic caches nothing unmarked; the marks do not enter the comparison). OpenAI reports it in ``prompt_tokens_details.cached_tokens``
 (part of ``prompt_tokens``); Anthropic reports it as ``cache_read_input_tokens`` and leaves it
 out of ``input_tokens`` (``cache_creation_input_tokens`` is 0). With the request header
 ``x-scripted-no-usage-cache: 1`` no cache fields are reported at all (OpenAI: no
@@ -131,6 +133,11 @@ def _strip_cache_control(v):
     return v
 
 
+def _marked(content):
+    """Whether an Anthropic system prompt or message content holds a cache_control mark."""
+    return isinstance(content, list) and any(isinstance(b, dict) and "cache_control" in b for b in content)
+
+
 def _canon(v):
     return json.dumps(_strip_cache_control(v), sort_keys=True, separators=(",", ":"))
 
@@ -232,7 +239,7 @@ def validate_openai(headers, body):
                              f"{p}.content")
         roles.append(role)
         out.append((_canon({"role": role, "content": c}),
-                    math.ceil(chars / 4) + IMAGE_TOKENS * images))
+                    math.ceil(chars / 4) + IMAGE_TOKENS * images, False))
     _check_order(roles, True)
     return out, roles.count("assistant")
 
@@ -309,7 +316,7 @@ def validate_anthropic(headers, body):
         elif not isinstance(sysp, str):
             raise BadRequest("system: must be a string or an array of text blocks", "system")
         chars, _ = _anthropic_blocks(sysp, "system", "system", False) if sysp != "" else (0, 0)
-        out.append((_canon({"system": sysp}), math.ceil(chars / 4)))
+        out.append((_canon({"system": sysp}), math.ceil(chars / 4), _marked(sysp)))
     msgs = body.get("messages")
     if not isinstance(msgs, list) or not msgs:
         raise BadRequest("messages: Field required (a non-empty array)", "messages")
@@ -327,7 +334,7 @@ def validate_anthropic(headers, body):
         chars, images = _anthropic_blocks(m["content"], f"{p}.content", role, role == "user")
         roles.append(role)
         out.append((_canon({"role": role, "content": m["content"]}),
-                    math.ceil(chars / 4) + IMAGE_TOKENS * images))
+                    math.ceil(chars / 4) + IMAGE_TOKENS * images, _marked(m["content"])))
     try:
         _check_order(roles, False)
     except BadRequest as e:
@@ -393,15 +400,23 @@ class State:
             return True
 
     def cached_prefix(self, api, msgs):
-        """Tokens of the longest prefix equal to the previous request's; remembers this one."""
-        canon = [c for c, _ in msgs]
+        """Tokens of the prefix a provider's cache would serve; remembers this request.
+
+        OpenAI-compatible servers cache by themselves: the longest prefix of whole messages equal
+        to the previous request's. Anthropic caches only what a ``cache_control`` mark closed: the
+        longest equal prefix that ends at an entry (system prompt or message) the previous
+        request marked, read only when this request marks an entry at or after it."""
         with self.lock:
             prev = self.previous.get(api, [])
-            self.previous[api] = canon
+            self.previous[api] = msgs
         n = 0
-        while n < len(canon) and n < len(prev) and canon[n] == prev[n]:
+        while n < len(msgs) and n < len(prev) and msgs[n][0] == prev[n][0]:
             n += 1
-        return sum(t for _, t in msgs[:n])
+        if api == "anthropic":
+            last_mark = max((i for i, m in enumerate(msgs) if m[2]), default=-1)
+            written = [i for i in range(n) if prev[i][2] and i <= last_mark]
+            n = written[-1] + 1 if written else 0
+        return sum(m[1] for m in msgs[:n])
 
     def write_log(self, n, kind, obj):
         if not self.log_dir:
@@ -537,7 +552,7 @@ class Handler(BaseHTTPRequestHandler):
             return self._send(400, payload, n)
 
         text = self.state.responses[k] if k < len(self.state.responses) else EXHAUSTED
-        prompt = sum(t for _, t in msgs)
+        prompt = sum(m[1] for m in msgs)
         cached = self.state.cached_prefix(api, msgs)
         completion = _text_tokens(text)
         no_cache = self.headers.get("x-scripted-no-usage-cache", "").strip() == "1" or mode == "nocache"

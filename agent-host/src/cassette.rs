@@ -523,6 +523,7 @@ mod tests {
             attempts: 1,
             wall_s: 0.5,
             raw: json!({"id": "x"}),
+            truncated: false,
         }
     }
 

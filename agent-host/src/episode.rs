@@ -14,7 +14,8 @@ use serde::Serialize;
 use serde_json::{json, Value};
 
 use crate::llm::{Client, EndpointConfig, Message, Part, Role};
-use crate::worker::{Budget, ExecResult, Limits, Worker, WorkerConfig};
+use crate::prompt;
+use crate::worker::{Budget, Limits, Worker, WorkerConfig};
 
 /// How an episode's `stop_reason` begins when the LLM endpoint could not answer.
 pub const ENDPOINT_FAILED: &str = "the LLM endpoint failed";
@@ -73,31 +74,51 @@ pub struct Decision {
     pub code: Option<String>,
     pub expected: String,
     pub stop: Option<String>,
-}
-
-fn tag(text: &str, name: &str) -> Option<String> {
-    let open = format!("<{name}>");
-    let close = format!("</{name}>");
-    let start = text.find(&open)? + open.len();
-    let end = text[start..].find(&close).map_or(text.len(), |e| start + e);
-    Some(text[start..end].trim().to_string())
+    /// Tags opened and never closed (each taken to the end of the reply).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub unclosed: Vec<String>,
 }
 
 impl Decision {
     pub fn parse(text: &str) -> Self {
-        let code = tag(text, "code").map(|c| {
+        let mut unclosed = Vec::new();
+        let mut tag = |name: &str| -> Option<String> {
+            let open = format!("<{name}>");
+            let start = text.find(&open)? + open.len();
+            let end = match text[start..].find(&format!("</{name}>")) {
+                Some(e) => start + e,
+                None => {
+                    unclosed.push(name.to_string());
+                    text.len()
+                }
+            };
+            Some(text[start..end].trim().to_string())
+        };
+        let code = tag("code").map(|c| {
             // Tolerate a Markdown fence inside the tag.
             let c = c.trim();
             let c = c.strip_prefix("```python").or_else(|| c.strip_prefix("```")).unwrap_or(c);
             c.strip_suffix("```").unwrap_or(c).trim().to_string()
         });
+        let (observation, plan, expected, stop) = (tag("observation"), tag("plan"), tag("expected"), tag("stop"));
         Self {
-            observation: tag(text, "observation").unwrap_or_default(),
-            plan: tag(text, "plan").unwrap_or_default(),
+            observation: observation.unwrap_or_default(),
+            plan: plan.unwrap_or_default(),
             code: code.filter(|c| !c.is_empty()),
-            expected: tag(text, "expected").unwrap_or_default(),
-            stop: tag(text, "stop"),
+            expected: expected.unwrap_or_default(),
+            stop,
+            unclosed,
         }
+    }
+
+    /// Why the reply cannot be used as it is: the endpoint cut it off at its token limit
+    /// (`truncated`), so an unclosed tag holds a partial program or report. `None`: usable (an
+    /// unclosed tag in a reply that ended by itself runs to the end of the reply).
+    pub fn problem(&self, truncated: bool) -> Option<String> {
+        truncated.then(|| match self.unclosed.as_slice() {
+            [] => "the endpoint cut your reply off at its token limit".to_string(),
+            tags => format!("the endpoint cut your reply off at its token limit, inside <{}>", tags.join(">, <")),
+        })
     }
 }
 
@@ -110,6 +131,12 @@ pub struct EpisodeResult {
     pub tokens_cached: u64,
     pub tokens_out: u64,
     pub tokens_reasoning: u64,
+    /// Offline estimates (characters / 4, 765 per image), labelled as such: the input tokens of
+    /// every request, and the part of each request's prefix it shares with the one before (what
+    /// a provider's prompt cache could serve). For comparisons where the endpoint reports no
+    /// cache counts (`tokens_cached` is the provider's own count).
+    pub tokens_in_estimated: u64,
+    pub tokens_cached_estimated: u64,
     pub wall_s: f64,
     pub model_s: f64,
     pub exec_s: f64,
@@ -155,63 +182,6 @@ fn write_atomic(path: &Path, data: &[u8]) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn read_doc(root: &Path, rel: &str) -> String {
-    std::fs::read_to_string(root.join("robot-skill").join(rel)).unwrap_or_else(|_| format!("({rel} is missing)"))
-}
-
-/// The system prompt: the agent-facing documents, the decision format and the skills section.
-pub fn system_prompt(root: &Path, profile: &str, skills: &str) -> String {
-    let profile_doc = if profile == "franka" { "api/FRANKA.md" } else { "api/SIMULATION.md" };
-    let mut s = String::from(
-        "You control a robot arm by writing Python stage programs. The documents below (from the \
-         robot-skill folder) are your instructions; config/robot.json is at the end.\n\n",
-    );
-    for doc in ["SKILL.md", "api/README.md", profile_doc] {
-        s.push_str(&format!("===== robot-skill/{doc} =====\n{}\n\n", read_doc(root, doc)));
-    }
-    s.push_str(&format!("===== robot-skill/config/robot.json =====\n{}\n\n", read_doc(root, "config/robot.json")));
-    s.push_str(&format!(
-        "===== Skills =====\n{}\n\n",
-        if skills.is_empty() { "(no skills recorded yet)" } else { skills }
-    ));
-    s.push_str(DECISION_FORMAT);
-    s
-}
-
-const DECISION_FORMAT: &str = "===== How to answer =====
-Every reply is one decision in this form:
-<observation>what the latest images and measured state show</observation>
-<plan>what this stage does, its entry conditions and how you will know it worked</plan>
-<code>
-one complete Python program for this stage (it runs in a fresh process in a sandbox; the current
-folder is a scratch folder kept for the whole episode; files you save there stay; print what you
-need to verify; only `from robo import reset, get_state, post_actions`, numpy and the standard
-library are available; no network)
-</code>
-<expected>the visible effect you expect once it ran</expected>
-When the task is done (or cannot be done), reply with <observation>...</observation> and
-<stop>why you stop</stop> instead of code. After each program you get its output, any error,
-the measured state before and after, and fresh camera images.
-";
-
-fn state_line(s: &Value) -> String {
-    let r = |v: &Value| -> String {
-        v.as_array()
-            .map(|a| a.iter().map(|x| format!("{:.4}", x.as_f64().unwrap_or(f64::NAN))).collect::<Vec<_>>().join(", "))
-            .unwrap_or_default()
-    };
-    format!(
-        "joint [{}]; ee_pose [{}]; gripper [{}]; external_force_n [{}]; timestamp {:.3}; control_type {}; fault {}",
-        r(&s["joint"]),
-        r(&s["ee_pose"]),
-        r(&s["gripper"]),
-        r(&s["external_force_n"]),
-        s["timestamp"].as_f64().unwrap_or(0.0),
-        s["control_type"],
-        s["fault"],
-    )
-}
-
 fn images(obs: &Value) -> Vec<(String, Vec<u8>)> {
     let mut out: Vec<(String, Vec<u8>)> = obs["images"]
         .as_object()
@@ -226,53 +196,6 @@ fn images(obs: &Value) -> Vec<(String, Vec<u8>)> {
         .unwrap_or_default();
     out.sort();
     out
-}
-
-fn feedback_text(
-    n: u32,
-    r: &ExecResult,
-    before: &Value,
-    after: &Value,
-    budget: u64,
-    left: u32,
-    lockstep: bool,
-) -> String {
-    // In lockstep the wall clock says nothing about the robot and would make each request
-    // differ from run to run (a replayed cassette needs the same requests): simulated time.
-    let took = if lockstep {
-        let t = |s: &Value| s["state"]["timestamp"].as_f64().unwrap_or(0.0);
-        format!("{:.3} s simulated", t(after) - t(before))
-    } else {
-        format!("{:.1} s", r.wall_s)
-    };
-    let mut t = format!(
-        "Stage program {n} ended: {}{}; control steps used {} of {budget}; robot calls {}; {took}.\n",
-        r.exit,
-        r.exit_code.map(|c| format!(" (code {c})")).unwrap_or_default(),
-        r.control_steps,
-        r.robot_calls,
-    );
-    if let Some(v) = &r.violation {
-        t.push_str(&format!("SANDBOX: {v}\n"));
-    }
-    if r.budget_refusals > 0 {
-        t.push_str(&format!("{} robot call(s) were refused by the control-step budget.\n", r.budget_refusals));
-    }
-    for (name, body) in [("stdout", &r.stdout), ("stderr", &r.stderr)] {
-        t.push_str(&format!("--- {name} ---\n{}\n", if body.is_empty() { "(empty)" } else { body.trim_end() }));
-    }
-    if let Some(e) = &r.exception {
-        t.push_str(&format!("--- exception ---\n{}\n", e.trim_end()));
-    }
-    t.push_str(&format!(
-        "State before: {}\nState after:  {}\n",
-        state_line(&before["state"]),
-        state_line(&after["state"])
-    ));
-    let fb = &after["state"]["control_feedback"];
-    t.push_str(&format!("Last control_feedback: {} — {}\n", fb["status"], fb["reason"]));
-    t.push_str(&format!("Fresh images after the program are attached. Decisions left: {left}.\n"));
-    t
 }
 
 pub struct Recorder {
@@ -304,15 +227,19 @@ impl Recorder {
     }
 }
 
-/// Keeps images only in the newest `keep` user messages (long episodes would otherwise pass
-/// the endpoints' image and size limits); older ones become a short note.
-fn prune_images(messages: &mut [Message], keep: usize) {
+/// Keeps images only in the newest user messages (long episodes would otherwise pass the
+/// endpoints' image and size limits); older ones become a short note. The cut moves `step`
+/// messages at a time, so the conversation before it stays the same for `step` requests and a
+/// provider's prompt cache keeps serving it (a cut moving every request would end the cached
+/// prefix at the first message): between `keep` and `keep + step - 1` messages keep theirs.
+fn prune_images(messages: &mut [Message], keep: usize, step: usize) {
     let users: Vec<usize> = messages.iter().enumerate().filter(|(_, m)| m.role == Role::User).map(|(i, _)| i).collect();
-    let cut = users.len().saturating_sub(keep);
+    let over = users.len().saturating_sub(keep);
+    let cut = over - over % step.max(1);
     for &i in &users[..cut] {
         for p in messages[i].parts.iter_mut() {
             if matches!(p, Part::Png(_)) {
-                *p = Part::Text("[an older camera image, no longer shown]".into());
+                *p = Part::Text("[an older image, no longer shown]".into());
             }
         }
     }
@@ -328,6 +255,116 @@ fn instruction(scene: &Path) -> anyhow::Result<String> {
         .context("the scene has no [task] instruction")
 }
 
+/// Images a program may hand over per run (`show/` in its scratch folder), their largest side
+/// in pixels and their largest file size.
+pub const MAX_SHOWN: usize = 4;
+pub const MAX_SHOWN_SIDE: u32 = 1280;
+pub const MAX_SHOWN_BYTES: u64 = 4 << 20;
+
+/// Takes the images a program left in `<scratch>/show/` (`robo_perception.show`): at most
+/// [`MAX_SHOWN`] PNG files, by name, each decoded and written again as 8-bit PNG (so an endpoint
+/// never sees a file it might refuse), within [`MAX_SHOWN_SIDE`] and [`MAX_SHOWN_BYTES`]. What
+/// is refused is named with the reason. The folder is emptied for the next program; no link in
+/// it is followed.
+pub fn take_shown(scratch: &Path) -> Vec<(prompt::Shown, Option<Vec<u8>>)> {
+    use std::io::Read as _;
+    use std::os::unix::fs::OpenOptionsExt as _;
+    let dir = scratch.join("show");
+    let mut out = Vec::new();
+    if !std::fs::symlink_metadata(&dir).is_ok_and(|m| m.is_dir()) {
+        let _ = std::fs::remove_file(&dir);
+        return out;
+    }
+    let mut names: Vec<String> = std::fs::read_dir(&dir)
+        .map(|rd| rd.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect())
+        .unwrap_or_default();
+    names.sort();
+    let refuse = |name: &str, why: String| (prompt::Shown::Refused { name: format!("show/{name}"), why }, None);
+    let mut taken = 0;
+    // Names starting with '.' are files being written (robo_perception's save_png renames them).
+    for name in names.iter().filter(|n| !n.starts_with('.')) {
+        if taken == MAX_SHOWN {
+            out.push(refuse(name, format!("at most {MAX_SHOWN} images are shown per program")));
+            continue;
+        }
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
+            .open(dir.join(name));
+        let Ok(mut file) = file else {
+            out.push(refuse(name, "not a regular file".into()));
+            continue;
+        };
+        match file.metadata() {
+            Ok(m) if m.is_file() && m.len() <= MAX_SHOWN_BYTES => {}
+            Ok(m) if m.is_file() => {
+                out.push(refuse(name, format!("{} bytes, more than {MAX_SHOWN_BYTES}", m.len())));
+                continue;
+            }
+            _ => {
+                out.push(refuse(name, "not a regular file".into()));
+                continue;
+            }
+        }
+        let mut bytes = Vec::new();
+        if (&mut file).take(MAX_SHOWN_BYTES).read_to_end(&mut bytes).is_err() {
+            out.push(refuse(name, "could not be read".into()));
+            continue;
+        }
+        match normalise_png(&bytes) {
+            Ok((png, width, height)) => {
+                taken += 1;
+                out.push((prompt::Shown::Image { name: format!("show/{name}"), width, height }, Some(png)));
+            }
+            Err(why) => out.push(refuse(name, why)),
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    out
+}
+
+/// A PNG file decoded and encoded again as 8-bit RGB(A); its size. Refuses what is no PNG or is
+/// larger than [`MAX_SHOWN_SIDE`] on a side.
+fn normalise_png(bytes: &[u8]) -> Result<(Vec<u8>, u32, u32), String> {
+    let mut d = png::Decoder::new(std::io::Cursor::new(bytes));
+    d.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
+    let mut r = d.read_info().map_err(|e| format!("not a PNG image ({e})"))?;
+    let (w, h) = (r.info().width, r.info().height);
+    if w > MAX_SHOWN_SIDE || h > MAX_SHOWN_SIDE {
+        return Err(format!("{w}x{h} pixels, more than {MAX_SHOWN_SIDE} on a side"));
+    }
+    let mut buf = vec![0; r.output_buffer_size().ok_or("an image too large to decode")?];
+    let frame = r.next_frame(&mut buf).map_err(|e| format!("not a whole PNG image ({e})"))?;
+    let (color, data) = match frame.color_type {
+        png::ColorType::Rgb => (png::ColorType::Rgb, buf[..frame.buffer_size()].to_vec()),
+        png::ColorType::Rgba => (png::ColorType::Rgba, buf[..frame.buffer_size()].to_vec()),
+        png::ColorType::Grayscale => {
+            (png::ColorType::Rgb, buf[..frame.buffer_size()].iter().flat_map(|&g| [g, g, g]).collect())
+        }
+        png::ColorType::GrayscaleAlpha => (
+            png::ColorType::Rgba,
+            buf[..frame.buffer_size()].chunks_exact(2).flat_map(|p| [p[0], p[0], p[0], p[1]]).collect(),
+        ),
+        png::ColorType::Indexed => return Err("a palette PNG that did not expand".into()),
+    };
+    let mut out = Vec::new();
+    {
+        let mut e = png::Encoder::new(&mut out, w, h);
+        e.set_color(color);
+        e.set_depth(png::BitDepth::Eight);
+        let mut wr = e.write_header().map_err(|e| e.to_string())?;
+        wr.write_image_data(&data).map_err(|e| e.to_string())?;
+    }
+    Ok((out, w, h))
+}
+
+/// The text of the robot configuration file in force (what `robot-skill/config/robot.json`
+/// shows the programs).
+fn robot_config_text(cfg: &EpisodeConfig) -> String {
+    let p = cfg.robot_config.clone().unwrap_or_else(|| cfg.root.join("robot-skill/config/robot.json"));
+    std::fs::read_to_string(&p).unwrap_or_else(|e| format!("({} could not be read: {e})", p.display()))
+}
+
 /// Runs one episode against a running instance; the caller owns the instance.
 pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult> {
     let t0 = Instant::now();
@@ -335,13 +372,11 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
     let mut rec = Recorder::new(&cfg.run_dir)?;
     let client = Client::new(cfg.endpoint.clone())?;
     let scratch = cfg.run_dir.join("scratch");
-    let mut worker = Worker::new(WorkerConfig {
-        instance: instance.into(),
-        scratch: scratch.clone(),
-        log_dir: cfg.run_dir.join("logs"),
-        root: cfg.root.clone(),
-        limits: cfg.limits.clone(),
-    });
+    let mut wc = WorkerConfig::new(instance, &scratch, &cfg.run_dir.join("logs"), &cfg.root, cfg.limits.clone());
+    wc.view_dir = cfg.run_dir.join("view");
+    wc.memory_dir = Some(cfg.memory_dir.clone());
+    wc.robot_config = cfg.robot_config.clone();
+    let mut worker = Worker::new(wc);
     // A fresh scratch folder (a reused run folder may hold what an earlier program planted;
     // remove_dir_all follows no links), then earlier memory records as copies in `memory/`.
     if std::fs::symlink_metadata(&scratch).is_ok() {
@@ -378,7 +413,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         }
         None => String::new(),
     };
-    let system = system_prompt(&cfg.root, &profile, &skills_text);
+    let system = prompt::system_prompt(&cfg.root, &profile, &robot_config_text(cfg), &skills_text);
     rec.file("system_prompt.md", system.as_bytes())?;
     rec.file(
         "config.json",
@@ -387,6 +422,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
             "max_decisions": cfg.max_decisions, "control_steps": cfg.control_steps, "limits": cfg.limits,
             "lockstep": cfg.lockstep, "instance": instance, "sandbox": worker.enforced,
             "seed": cfg.seed, "perturb": cfg.perturb, "skills": cfg.skills.is_some(),
+            "robot_config": cfg.robot_config, "memory": cfg.memory_dir,
         }))?
         .as_slice(),
     )?;
@@ -394,18 +430,21 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
     let mut out =
         EpisodeResult { gym: cfg.gym.clone(), run_dir: cfg.run_dir.display().to_string(), ..Default::default() };
     let mut messages: Vec<Message> = Vec::new();
-    let mut parts = vec![Part::Text(format!(
-        "First, observation only. Read your instructions (SKILL.md, api/README.md, the {profile} profile document \
-         and config/robot.json above). This is what get_state() returns now, with both camera images attached:\n{}\n\
-         Report the measured joints, TCP pose, gripper, what each camera shows, and the frame conventions and \
-         limits that apply. Do not move the robot in this turn: reset() and post_actions() are refused. You may \
-         include a <code> program that only observes. Then wait for the task.",
-        state_line(&first["state"])
-    ))];
-    if let Some(Part::Text(t)) = parts.first() {
-        rec.file("rounds/000/prompt.txt", t.as_bytes())?;
-    }
-    for (name, png) in images(&first) {
+    let task_budget = Budget { control_steps: cfg.control_steps, observe_only: false };
+    let fingerprint = prompt::memory_fingerprint(&first["state"]);
+    let facts = prompt::RunFacts {
+        profile: &profile,
+        max_decisions: cfg.max_decisions,
+        budget: task_budget,
+        limits: &cfg.limits,
+        memory: prompt::memory_counts(Some(&cfg.memory_dir), &fingerprint),
+    };
+    let first_images = images(&first);
+    let cameras: Vec<String> = first_images.iter().map(|(n, _)| n.clone()).collect();
+    let first_text = prompt::first_message(&first["state"], &facts, &cameras);
+    rec.file("rounds/000/prompt.txt", first_text.as_bytes())?;
+    let mut parts = vec![Part::Text(first_text)];
+    for (name, png) in first_images {
         rec.file(&format!("rounds/000/{name}.png"), &png)?;
         parts.push(Part::Png(png));
     }
@@ -414,12 +453,16 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
     let mut before = first;
     let mut observe_only = true;
     let mut executions = 0u32;
+    let mut estimate = crate::tokens::PrefixEstimate::default();
     let stop_reason = loop {
         if out.responses >= cfg.max_decisions {
             break format!("decision budget of {} spent", cfg.max_decisions);
         }
         let round = out.responses + 1;
-        prune_images(&mut messages, 6);
+        prune_images(&mut messages, 6, 3);
+        let est = estimate.next(&system, &messages);
+        out.tokens_in_estimated += est.input;
+        out.tokens_cached_estimated += est.shared_prefix;
         let completion = match client.complete(&system, &messages) {
             Ok(c) => c,
             Err(e) => {
@@ -436,12 +479,14 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         let dir = format!("rounds/{round:03}");
         timed(&mut split.records_s, || rec.file(&format!("{dir}/response.txt"), completion.text.as_bytes()))?;
         let decision = Decision::parse(&completion.text);
+        let problem = decision.problem(completion.truncated);
         messages.push(Message::text(Role::Assistant, completion.text.clone()));
         let mut record = json!({
             "round": round, "observe_only": observe_only, "decision": decision, "usage": completion.usage,
-            "attempts": completion.attempts, "model_s": completion.wall_s,
+            "estimate": est, "attempts": completion.attempts, "model_s": completion.wall_s,
+            "truncated": completion.truncated,
         });
-        if let Some(why) = &decision.stop {
+        if let (Some(why), None) = (&decision.stop, &problem) {
             if !observe_only {
                 timed(&mut split.records_s, || rec.round(&record))?;
                 break why.clone();
@@ -449,11 +494,18 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         }
         let mut text = String::new();
         let mut attach = Vec::new();
-        match &decision.code {
-            Some(code) => {
+        match (&decision.code, &problem) {
+            (_, Some(problem)) => {
+                text = format!(
+                    "Your reply could not be used: {problem} (at most {} tokens per reply). Nothing ran. Send the \
+                     decision again, whole and shorter (a program can import a module an earlier program saved).\n",
+                    cfg.endpoint.max_tokens
+                );
+            }
+            (Some(code), None) => {
                 executions += 1;
                 timed(&mut split.records_s, || rec.file(&format!("{dir}/stage.py"), code.as_bytes()))?;
-                let budget = Budget { control_steps: if observe_only { 0 } else { cfg.control_steps }, observe_only };
+                let budget = if observe_only { Budget { control_steps: 0, observe_only: true } } else { task_budget };
                 let r = worker.run(code, &format!("stage-{executions}.py"), budget)?;
                 out.exec_s += r.wall_s;
                 split.program_start_s += r.host_s;
@@ -462,27 +514,53 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
                     worker.host_cmd(json!({"cmd": "observe", "images": true, "raw": raw_at(round)}))
                 })?;
                 timed(&mut split.records_s, || rec.file(&format!("{dir}/calls.json"), &serde_json::to_vec(&r.calls)?))?;
-                let left = cfg.max_decisions.saturating_sub(out.responses);
-                text = feedback_text(executions, &r, &before, &after, budget.control_steps, left, cfg.lockstep);
-                for (name, png) in timed(&mut split.observe_s, || images(&after)) {
+                let shown = take_shown(&scratch);
+                let mut shown_files = Vec::new();
+                let camera_images = timed(&mut split.observe_s, || images(&after));
+                let cameras: Vec<String> = camera_images.iter().map(|(n, _)| n.clone()).collect();
+                for (name, png) in camera_images {
                     timed(&mut split.records_s, || rec.file(&format!("{dir}/{name}.png"), &png))?;
                     attach.push(Part::Png(png));
                 }
+                for (k, (s, png)) in shown.iter().enumerate() {
+                    if let (prompt::Shown::Image { name, .. }, Some(png)) = (s, png) {
+                        let file = format!("{dir}/shown/{k}-{}", name.trim_start_matches("show/"));
+                        timed(&mut split.records_s, || rec.file(&file, png))?;
+                        shown_files.push(file);
+                        attach.push(Part::Png(png.clone()));
+                    }
+                }
+                let left = cfg.max_decisions.saturating_sub(out.responses);
+                let shown: Vec<prompt::Shown> = shown.into_iter().map(|(s, _)| s).collect();
+                text = prompt::feedback_text(&prompt::Feedback {
+                    n: executions,
+                    result: &r,
+                    before: &before,
+                    after: &after,
+                    budget,
+                    decisions_left: left,
+                    max_decisions: cfg.max_decisions,
+                    lockstep: cfg.lockstep,
+                    shown: &shown,
+                    cameras: &cameras,
+                });
                 let memory = crate::memory::collect(&scratch, &cfg.memory_dir, &mut records_taken);
+                worker.refresh_view()?;
                 record["exec"] = serde_json::to_value(&r)?;
                 record["state_before"] = before["state"].clone();
                 record["state_after"] = after["state"].clone();
                 record["obs_before"] = json!(obs_before);
                 record["obs_after"] = json!(format!("{dir}/obs.npz"));
                 record["calls"] = json!(format!("{dir}/calls.json"));
+                record["shown"] = json!(shown_files);
                 obs_before = format!("{dir}/obs.npz");
                 record["memory_added"] = json!(memory);
                 before = after;
             }
-            None if decision.stop.is_none() => {
+            (None, None) if decision.stop.is_none() => {
                 text = "Your reply had neither a <code> program nor <stop>. Answer in the decision format.\n".into();
             }
-            None => {}
+            (None, None) => {}
         }
         if observe_only {
             text.push_str(&format!(

@@ -4,8 +4,10 @@ pub mod cassette;
 pub mod episode;
 pub mod llm;
 pub mod memory;
+pub mod prompt;
 pub mod sandbox;
 pub mod session;
+pub mod tokens;
 pub mod viewer;
 pub mod worker;
 

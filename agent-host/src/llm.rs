@@ -134,6 +134,18 @@ pub struct Completion {
     pub wall_s: f64,
     /// The response body as received.
     pub raw: Value,
+    /// The endpoint stopped the answer at its token limit (`max_tokens`), not where the model
+    /// ended it.
+    pub truncated: bool,
+}
+
+/// Whether a response body says the answer was cut off at the token limit.
+pub fn cut_off(provider: &str, raw: &Value) -> bool {
+    if provider == "anthropic" {
+        raw["stop_reason"] == "max_tokens"
+    } else {
+        raw["choices"][0]["finish_reason"] == "length"
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -209,7 +221,7 @@ impl Client {
     pub fn body(&self, system: &str, messages: &[Message]) -> Value {
         let b64 = |png: &[u8]| base64::engine::general_purpose::STANDARD.encode(png);
         if self.cfg.provider == "anthropic" {
-            let msgs: Vec<Value> = messages
+            let mut msgs: Vec<Value> = messages
                 .iter()
                 .map(|m| {
                     let content: Vec<Value> = m
@@ -224,8 +236,15 @@ impl Client {
                     json!({"role": m.role, "content": content})
                 })
                 .collect();
+            // Anthropic caches a prompt prefix only up to a block marked `cache_control`: the
+            // system prompt (the same for every request of an episode) and the conversation so
+            // far (the next request starts with it). Two of the four marks a request may hold.
+            let cached = json!({"type": "ephemeral"});
+            if let Some(last) = msgs.last_mut().and_then(|m| m["content"].as_array_mut()).and_then(|c| c.last_mut()) {
+                last["cache_control"] = cached.clone();
+            }
             json!({"model": self.cfg.model, "max_tokens": self.cfg.max_tokens, "temperature": self.cfg.temperature,
-                   "system": system, "messages": msgs})
+                   "system": [{"type": "text", "text": system, "cache_control": cached}], "messages": msgs})
         } else {
             let mut msgs = vec![json!({"role": "system", "content": system})];
             msgs.extend(messages.iter().map(|m| {
@@ -268,6 +287,7 @@ impl Client {
                     usage: r.usage,
                     attempts: 0,
                     wall_s: t0.elapsed().as_secs_f64(),
+                    truncated: cut_off(&e.provider, &r.raw),
                     raw: r.raw,
                 })
             }
@@ -357,7 +377,8 @@ impl Client {
                 .to_string();
             (text, normalise_openai(&v["usage"]))
         };
-        Ok(Completion { text: out, usage, attempts, wall_s: t0.elapsed().as_secs_f64(), raw: v })
+        let truncated = cut_off(&self.cfg.provider, &v);
+        Ok(Completion { text: out, usage, attempts, wall_s: t0.elapsed().as_secs_f64(), raw: v, truncated })
     }
 }
 

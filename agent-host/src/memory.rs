@@ -13,8 +13,9 @@ pub const MAX_RECORD_BYTES: u64 = 64 * 1024;
 /// Whatever an earlier program left at `scratch/memory` (a reused scratch folder of `r2g exec`)
 /// is removed first, following no links, so a planted link cannot redirect the copies.
 pub fn seed(scratch: &Path, memory_dir: &Path) -> anyhow::Result<()> {
-    use std::os::unix::fs::OpenOptionsExt as _;
-    let Ok(rd) = std::fs::read_dir(memory_dir) else { return Ok(()) };
+    if !memory_dir.is_dir() {
+        return Ok(());
+    }
     let dst = scratch.join("memory");
     match std::fs::symlink_metadata(&dst) {
         Ok(m) if m.is_dir() => std::fs::remove_dir_all(&dst)?,
@@ -22,7 +23,15 @@ pub fn seed(scratch: &Path, memory_dir: &Path) -> anyhow::Result<()> {
         Err(_) => {}
     }
     std::fs::create_dir(&dst)?;
-    // records only (`<timestamp>-<uuid>.json` or `.md`): not the folder's README or anything else
+    mirror(memory_dir, &dst)
+}
+
+/// Copies every record of `memory_dir` that `dst` (an existing folder the host owns) lacks:
+/// records only (`<timestamp>-<uuid>.json` or `.md`), not the folder's README or anything else;
+/// a name `dst` holds already is left as it is (records never change).
+pub fn mirror(memory_dir: &Path, dst: &Path) -> anyhow::Result<()> {
+    use std::os::unix::fs::OpenOptionsExt as _;
+    let Ok(rd) = std::fs::read_dir(memory_dir) else { return Ok(()) };
     let records = rd
         .flatten()
         .filter(|e| e.file_type().is_ok_and(|t| t.is_file()) && is_record_name(&e.file_name().to_string_lossy()));
@@ -42,7 +51,7 @@ pub fn seed(scratch: &Path, memory_dir: &Path) -> anyhow::Result<()> {
 
 /// A record's file name as robot-skill/memory/README.md gives it: `<UTC timestamp>-<uuid4>`
 /// with `.json` or `.md`, so it starts with a digit (the folder's README is no record).
-fn is_record_name(name: &str) -> bool {
+pub fn is_record_name(name: &str) -> bool {
     name.len() < 120
         && name.starts_with(|c: char| c.is_ascii_digit())
         && name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))

@@ -462,6 +462,9 @@ pub struct ExecOpts {
     /// program runs, and the program's new records appended to it afterwards, as in an
     /// episode. `None`: no memory (the scratch folder has no `memory/`).
     pub memory: Option<PathBuf>,
+    /// The robot configuration the instance runs with, shown to the program as
+    /// `robot-skill/config/robot.json` (None: the shipped one).
+    pub robot_config: Option<PathBuf>,
 }
 
 /// Runs the program in `file` once in a confined worker; the result (stdout, stderr, exit,
@@ -473,23 +476,37 @@ pub fn exec(file: &Path, o: &ExecOpts) -> anyhow::Result<Value> {
     let run_dir = root.join("runs").join("exec").join(&stamp);
     let scratch = o.scratch.clone().unwrap_or_else(|| run_dir.join("scratch"));
     let limits = crate::worker::Limits { wall_s: o.wall_s, cpu_s: o.cpu_s, ..Default::default() };
-    let cfg = crate::worker::WorkerConfig {
-        instance: o.instance.clone(),
-        scratch: scratch.clone(),
-        log_dir: run_dir.join("logs"),
-        root,
-        limits,
-    };
+    let mut cfg = crate::worker::WorkerConfig::new(&o.instance, &scratch, &run_dir.join("logs"), &root, limits);
+    cfg.memory_dir.clone_from(&o.memory);
+    cfg.robot_config.clone_from(&o.robot_config);
     if let Some(dir) = &o.memory {
         std::fs::create_dir_all(&scratch).with_context(|| format!("creating {}", scratch.display()))?;
         crate::memory::seed(&scratch, dir)?;
     }
+    let config_shown = cfg.robot_config.clone().unwrap_or_else(|| root.join("robot-skill/config/robot.json"));
     let mut worker = crate::worker::Worker::new(cfg);
+    // The configuration the program is shown should be the one the instance reports.
+    let mut warnings = Vec::new();
+    let state = worker.host_cmd(json!({"cmd": "observe", "images": false}))?;
+    let reported = &state["state"]["setup"]["robot_config_sha256"];
+    let shown = std::fs::read(&config_shown).map(|b| {
+        use sha2::Digest as _;
+        sha2::Sha256::digest(b).iter().map(|x| format!("{x:02x}")).collect::<String>()
+    });
+    if reported.is_string() && shown.as_ref().ok().map(|s| json!(s)).as_ref() != Some(reported) {
+        warnings.push(format!(
+            "the program was shown {} as robot-skill/config/robot.json, but instance '{}' runs another configuration \
+             (SHA-256 {reported}); pass the instance's file with --robot-config",
+            config_shown.display(),
+            o.instance
+        ));
+    }
     let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "program.py".into());
     let budget = crate::worker::Budget { control_steps: o.budget, observe_only: o.observe_only };
     let r = worker.run(&code, &name, budget)?;
     let mut v = serde_json::to_value(&r)?;
     v["sandbox"] = serde_json::to_value(&worker.enforced)?;
+    v["warnings"] = json!(warnings);
     if let Some(dir) = &o.memory {
         v["memory_added"] = json!(crate::memory::collect(&scratch, dir, &mut 0));
     }

@@ -4,6 +4,7 @@
 //! quota and the worker's own kernel limits, and reads its output as it comes; whatever the
 //! program does, the run ends with an [`ExecResult`] and the host carries on.
 
+use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
 use std::os::unix::net::UnixStream;
@@ -60,7 +61,37 @@ pub struct WorkerConfig {
     /// The project's root (for `.venv`, `agent-host/py`, `robot-skill`).
     pub root: PathBuf,
     pub limits: Limits,
+    /// Where the host builds the read-only `robot-skill/` the worker sees (as
+    /// `<scratch>/robot-skill`): the documents, the configuration in force and the memory
+    /// folder's records ([`Worker::refresh_view`]). Never inside `scratch`.
+    pub view_dir: PathBuf,
+    /// The memory folder whose records `robot-skill/memory/` shows (None: only its README).
+    pub memory_dir: Option<PathBuf>,
+    /// The robot configuration file in force, shown as `robot-skill/config/robot.json` (None:
+    /// the shipped `robot-skill/config/robot.json`).
+    pub robot_config: Option<PathBuf>,
 }
+
+impl WorkerConfig {
+    /// A worker for `instance` writing in `scratch`, its logs in `log_dir` and its view beside
+    /// them (`<log_dir>/../view`), without memory, on the shipped robot configuration.
+    pub fn new(instance: &str, scratch: &Path, log_dir: &Path, root: &Path, limits: Limits) -> Self {
+        Self {
+            instance: instance.into(),
+            scratch: scratch.to_path_buf(),
+            log_dir: log_dir.to_path_buf(),
+            root: root.to_path_buf(),
+            limits,
+            view_dir: log_dir.parent().unwrap_or(log_dir).join("view"),
+            memory_dir: None,
+            robot_config: None,
+        }
+    }
+}
+
+/// The documents of `robot-skill/` a stage program reads as they are in the checkout (linked
+/// into its view); everything else there is made per run (`config/`, the memory records).
+pub const SHARED_DOCS: [&str; 5] = ["SKILL.md", "api", "examples", "skills/README.md", "memory/README.md"];
 
 /// What a program run gets within its run.
 #[derive(Debug, Clone, Copy)]
@@ -92,6 +123,13 @@ pub struct ExecResult {
     pub control_steps: u64,
     pub robot_calls: u64,
     pub budget_refusals: u64,
+    /// The program's chunks by outcome (`executed`, `failed`, `rejected`: refused by the
+    /// runtime, the budget or robo before anything moved) and its resets (`done`, `refused`).
+    pub chunks: BTreeMap<String, u64>,
+    pub resets: BTreeMap<String, u64>,
+    /// The program's own last `reset`/`post_actions`: `fn`, `status`, `reason`, `executed`
+    /// (None: it made neither).
+    pub last_call: Option<serde_json::Value>,
     /// Output written straight to the worker's descriptors (bypassing sys.stdout), tail only.
     pub raw_output: String,
     /// The program's reset/post_actions calls as the proxy logged them (targets, reply,
@@ -196,6 +234,8 @@ pub struct Worker {
     /// What the kernel enforced on the last worker.
     pub enforced: Option<Enforced>,
     pub starts: u32,
+    /// The worker's `robot-skill/` view has been built ([`Self::build_view`]).
+    view_built: bool,
 }
 
 /// Moves a descriptor above the range children use, close-on-exec.
@@ -295,7 +335,7 @@ impl Worker {
     pub fn new(cfg: WorkerConfig) -> Self {
         // R2G_HOST_BASELINE=1: the host as it was, for `bench agent`'s comparison in one run.
         let prestart = !ipc_schema::process::host_baseline();
-        Self { cfg, host: None, next: None, prestart, enforced: None, starts: 0 }
+        Self { cfg, host: None, next: None, prestart, enforced: None, starts: 0, view_built: false }
     }
 
     fn python(&self) -> PathBuf {
@@ -309,25 +349,21 @@ impl Worker {
         let prefix = real.parent().and_then(Path::parent).context("interpreter prefix")?.to_path_buf();
         let root = &self.cfg.root;
         let l = &self.cfg.limits;
-        let read = [
-            prefix.clone(),
-            root.join(".venv"),
-            root.join("agent-host/py"),
-            root.join("robot-skill/SKILL.md"),
-            root.join("robot-skill/api"),
-            root.join("robot-skill/config"),
-            root.join("robot-skill/memory/README.md"),
+        let mut read = vec![prefix.clone(), root.join(".venv"), root.join("agent-host/py"), self.cfg.view_dir.clone()];
+        // What the view's links point to (landlock judges a link's target).
+        read.extend(SHARED_DOCS.iter().map(|d| root.join("robot-skill").join(d)));
+        read.extend([
             PathBuf::from("/usr/lib"),
             PathBuf::from("/usr/share/locale"),
             PathBuf::from("/etc/ld.so.cache"),
             PathBuf::from("/etc/localtime"),
             PathBuf::from("/sys/devices/system/cpu"),
             PathBuf::from("/proc/self"),
-        ];
+        ]);
         let exec = [prefix.join("bin"), prefix.join("lib"), PathBuf::from("/lib64"), PathBuf::from("/usr/lib")];
         Ok(Policy {
             scratch: self.cfg.scratch.clone(),
-            read: read.to_vec(),
+            read,
             exec: exec.to_vec(),
             cpu_s: l.cpu_s,
             mem_mb: l.mem_mb,
@@ -344,12 +380,55 @@ impl Worker {
         self.cfg.scratch = std::fs::canonicalize(&self.cfg.scratch)?;
         self.cfg.log_dir = std::fs::canonicalize(&self.cfg.log_dir)?;
         self.cfg.root = std::fs::canonicalize(&self.cfg.root)?;
-        // The skill documents, readable from the scratch folder (landlock judges the target).
-        let link = self.cfg.scratch.join("robot-skill");
-        if std::fs::symlink_metadata(&link).is_err() {
-            std::os::unix::fs::symlink(self.cfg.root.join("robot-skill"), &link)?;
+        if !self.view_built {
+            self.build_view()?;
+            self.view_built = true;
         }
         Ok(())
+    }
+
+    /// Builds the read-only `robot-skill/` the worker sees at `<scratch>/robot-skill`: links to
+    /// the shared documents, a copy of the configuration in force as `config/robot.json` (and of
+    /// the perception configuration), and `memory/` with the memory folder's records. Whatever
+    /// stood at `<scratch>/robot-skill` (a link of an earlier run, or something a program
+    /// planted) is replaced, following no links.
+    fn build_view(&mut self) -> anyhow::Result<()> {
+        let view = self.cfg.view_dir.join("robot-skill");
+        if std::fs::symlink_metadata(&view).is_ok() {
+            std::fs::remove_dir_all(&view).with_context(|| format!("clearing {}", view.display()))?;
+        }
+        let docs = self.cfg.root.join("robot-skill");
+        for d in ["config", "memory", "skills"] {
+            std::fs::create_dir_all(view.join(d))?;
+        }
+        for d in SHARED_DOCS {
+            std::os::unix::fs::symlink(docs.join(d), view.join(d))?;
+        }
+        let config = self.cfg.robot_config.clone().unwrap_or_else(|| docs.join("config/robot.json"));
+        std::fs::copy(&config, view.join("config/robot.json"))
+            .with_context(|| format!("the robot configuration {}", config.display()))?;
+        let perception = std::env::var_os("R2G_PERCEPTION_CONFIG")
+            .map_or_else(|| docs.join("config/perception.json"), PathBuf::from);
+        if perception.is_file() {
+            std::fs::copy(&perception, view.join("config/perception.json"))?;
+        }
+        self.cfg.view_dir = std::fs::canonicalize(&self.cfg.view_dir)?;
+        self.refresh_view()?;
+        let link = self.cfg.scratch.join("robot-skill");
+        match std::fs::symlink_metadata(&link) {
+            Ok(m) if m.is_dir() => std::fs::remove_dir_all(&link)?,
+            Ok(_) => std::fs::remove_file(&link)?,
+            Err(_) => {}
+        }
+        std::os::unix::fs::symlink(self.cfg.view_dir.join("robot-skill"), &link)?;
+        Ok(())
+    }
+
+    /// Copies the memory folder's records that the view does not show yet into
+    /// `robot-skill/memory/` (records are append-only: a name shown once keeps its content).
+    pub fn refresh_view(&self) -> anyhow::Result<()> {
+        let Some(dir) = &self.cfg.memory_dir else { return Ok(()) };
+        crate::memory::mirror(dir, &self.cfg.view_dir.join("robot-skill/memory"))
     }
 
     /// Starts a proxy serving `robo` over `robo_end` (fd 3 in the proxy).
@@ -630,6 +709,12 @@ impl Worker {
         r.control_steps = n("steps");
         r.robot_calls = n("calls");
         r.budget_refusals = n("refused");
+        let counts = |k: &str| -> BTreeMap<String, u64> {
+            v.get(k).and_then(|c| serde_json::from_value(c.clone()).ok()).unwrap_or_default()
+        };
+        r.chunks = counts("chunks");
+        r.resets = counts("resets");
+        r.last_call = v.get("last").filter(|l| l.is_object()).cloned();
         r.calls = v.get("log").and_then(|l| l.as_array()).cloned().unwrap_or_default();
     }
 }

@@ -104,6 +104,11 @@ enum Cmd {
         /// Without it the program gets no memory/.
         #[arg(long)]
         memory: Option<std::path::PathBuf>,
+        /// The robot configuration the instance runs with (as given to `r2g up --robot-config`),
+        /// shown to the program as robot-skill/config/robot.json; default: the shipped one. The
+        /// result warns when it is not the one the instance reports.
+        #[arg(long)]
+        robot_config: Option<std::path::PathBuf>,
     },
     /// One episode of the stage-code agent loop on a gym this command starts; ends with one JSON
     /// line (success, responses, tokens, wall time split, run_dir).
@@ -789,8 +794,8 @@ fn main() {
             println!("{}", p.display());
             0
         }),
-        Cmd::Exec { file, instance, budget, wall_s, cpu_s, observe_only, scratch, memory } => {
-            let o = session::ExecOpts { instance, budget, wall_s, cpu_s, observe_only, scratch, memory };
+        Cmd::Exec { file, instance, budget, wall_s, cpu_s, observe_only, scratch, memory, robot_config } => {
+            let o = session::ExecOpts { instance, budget, wall_s, cpu_s, observe_only, scratch, memory, robot_config };
             session::exec(&file, &o).map(|v| {
                 println!("{v}");
                 0

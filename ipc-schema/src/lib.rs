@@ -10,7 +10,7 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 /// Bumped whenever any payload below changes layout or meaning. Every service carries it as
 /// the attribute `r2g.schema`; a process of another build is refused when it connects.
-pub const SCHEMA_VERSION: u32 = 9;
+pub const SCHEMA_VERSION: u32 = 10;
 /// Attribute key that carries [`SCHEMA_VERSION`] on every service.
 pub const SCHEMA_ATTRIBUTE: &str = "r2g.schema";
 
@@ -428,7 +428,7 @@ impl GripperState {
 /// runtime → agents, published once with history: the limits in force (`effective_safety`).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
-#[type_name("r2g.RuntimeInfo.v3")]
+#[type_name("r2g.RuntimeInfo.v4")]
 pub struct RuntimeInfo {
     pub schema: u32,
     pub mode: u32,
@@ -466,7 +466,14 @@ pub struct RuntimeInfo {
     /// (`get_state()["calibration"]`, runtime/README.md "Calibration"), NUL-padded UTF-8.
     /// (Blocks of 32 × 32 bytes so that the payload keeps a derived `Default`.)
     pub calibration: [[[u8; 32]; 32]; CALIBRATION_LEN / 1024],
+    /// What this runtime was started with, one JSON object (`get_state()["setup"]`: the gym and
+    /// the SHA-256 of the robot configuration file in force), NUL-padded UTF-8. Memory records
+    /// are keyed by it (robot-skill/memory/README.md), so it names the setup, never an episode.
+    pub setup: [[u8; 32]; SETUP_LEN / 32],
 }
+
+/// Bytes of [`RuntimeInfo::setup`].
+pub const SETUP_LEN: usize = 512;
 
 impl RuntimeInfo {
     /// [`RuntimeInfo::calibration`] as text (up to the first NUL).
@@ -481,6 +488,20 @@ impl RuntimeInfo {
             return Err(text.len());
         }
         write_str(self.calibration.as_flattened_mut().as_flattened_mut(), text);
+        Ok(())
+    }
+
+    /// [`RuntimeInfo::setup`] as text (up to the first NUL).
+    pub fn setup_str(&self) -> &str {
+        read_str(self.setup.as_flattened())
+    }
+
+    /// Sets [`RuntimeInfo::setup`]; a text that does not fit is refused whole, with its length.
+    pub fn set_setup(&mut self, text: &str) -> Result<(), usize> {
+        if text.len() > SETUP_LEN {
+            return Err(text.len());
+        }
+        write_str(self.setup.as_flattened_mut(), text);
         Ok(())
     }
 }
@@ -1058,12 +1079,13 @@ mod tests {
         assert_eq!(core::mem::size_of::<RobotState>(), 280 + ERROR_TEXT_LEN);
         assert_eq!(core::mem::size_of::<GripperState>(), 56 + ERROR_TEXT_LEN);
         assert_eq!(core::mem::size_of::<Reply>(), 48 + REASON_LEN);
-        assert_eq!(core::mem::size_of::<RuntimeInfo>(), 392 + CALIBRATION_LEN);
+        // Schema 10 adds the setup report (RuntimeInfo).
+        assert_eq!(core::mem::size_of::<RuntimeInfo>(), 392 + CALIBRATION_LEN + SETUP_LEN);
         // Schema 9 adds steps (RequestKind::Step, Request::step_ticks, Status::Stepped) and the
         // environment's own services (EnvQuery, EnvAnswer) to 8.
         assert_eq!(core::mem::size_of::<EnvQuery>(), 24);
         assert_eq!(core::mem::size_of::<EnvAnswer>(), 32 + ENV_ANSWER_LEN);
-        assert_eq!(SCHEMA_VERSION, 9);
+        assert_eq!(SCHEMA_VERSION, 10);
     }
 }
 

@@ -329,7 +329,21 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>, raw: boo
     out.set_item("control_feedback", fb)?;
     out.set_item("effective_safety", effective_safety(py, info.as_ref())?)?;
     out.set_item("calibration", calibration(py, info.as_ref(), &names)?)?;
+    out.set_item("setup", setup(py, info.as_ref())?)?;
     Ok(out)
+}
+
+/// What the runtime was started with (`gym`, `robot_config_sha256`); empty until it has
+/// published its info.
+fn setup<'py>(py: Python<'py>, info: Option<&RuntimeInfo>) -> PyResult<Bound<'py, PyDict>> {
+    let Some(text) = info.map(|i| i.setup_str()).filter(|t| !t.is_empty()) else {
+        return Ok(PyDict::new(py));
+    };
+    py.import("json")?
+        .getattr("loads")?
+        .call1((text,))?
+        .cast_into::<PyDict>()
+        .map_err(|_| PyRuntimeError::new_err("setup report is not an object"))
 }
 
 /// Where the TCP and camera calibrations come from: the runtime's report (the TCP, and every

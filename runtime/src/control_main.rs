@@ -99,6 +99,15 @@ pub fn main(after_cycle: Option<fn()>) -> i32 {
             return 2;
         }
     };
+    // The bytes the configuration was read from (a second read: the file is small and read once).
+    let config_bytes = match args.robot_config.as_ref().map(std::fs::read).transpose() {
+        Ok(b) => b,
+        Err(e) => {
+            eprintln!("r2g-control: error: reading the robot config again: {e}");
+            return 2;
+        }
+    };
+    let setup = crate::setup_report(&args.scene, config_bytes.as_deref());
     process::install_stop_signals();
     process::die_with_parent();
     let cfg = crate::RunConfig {
@@ -118,6 +127,7 @@ pub fn main(after_cycle: Option<fn()>) -> i32 {
         after_cycle,
         robot,
         calibration,
+        setup,
     };
     match crate::run(&cfg) {
         Ok(stats) => {

@@ -54,6 +54,18 @@ pub struct RunConfig {
     pub robot: RobotConfig,
     /// The calibration files `robot` names, as read at start.
     pub calibration: calibration::Calibration,
+    /// What `get_state()["setup"]` reports ([`setup_report`]).
+    pub setup: String,
+}
+
+/// The setup an instance runs, as agents see it (`get_state()["setup"]`): the gym (the scene's
+/// folder name) and the SHA-256 of the robot configuration file's bytes (`None`: the built-in
+/// defaults). Memory records are keyed by it, so nothing per-episode goes in.
+pub fn setup_report(scene: &Path, robot_config: Option<&[u8]>) -> String {
+    use sha2::Digest as _;
+    let gym = scene.parent().and_then(|p| p.file_name()).map(|n| n.to_string_lossy().into_owned());
+    let sha = robot_config.map(|b| sha2::Sha256::digest(b).iter().map(|x| format!("{x:02x}")).collect::<String>());
+    serde_json::json!({"gym": gym, "robot_config_sha256": sha}).to_string()
 }
 
 /// Reads the robot of a scene file: its URDF (relative to the scene), TCP link and limit
@@ -488,6 +500,9 @@ fn run_loops(
     let report = cfg.calibration.report(&controllers::math::homogeneous(p, q));
     if let Err(len) = info.set_calibration(&report) {
         bail!("the calibration report is {len} bytes, more than the {} that fit", ipc_schema::CALIBRATION_LEN);
+    }
+    if let Err(len) = info.set_setup(&cfg.setup) {
+        bail!("the setup report is {len} bytes, more than the {} that fit", ipc_schema::SETUP_LEN);
     }
     ports.info_pub.send_copy(info)?;
     health.last_state_ns.store(rt::now_ns(), std::sync::atomic::Ordering::Relaxed);

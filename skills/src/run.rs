@@ -130,13 +130,10 @@ pub fn run(skill: &Skill, o: &RunOpts) -> anyhow::Result<RunResult> {
     }
     std::fs::write(run_dir.join("program.py"), PROGRAM)?;
     let gym = GymRun::start(&o.gym, &run_dir, &o.setup)?;
-    let mut worker = Worker::new(WorkerConfig {
-        instance: gym.instance.clone(),
-        scratch: scratch.clone(),
-        log_dir: run_dir.join("logs"),
-        root,
-        limits: Limits { wall_s: o.wall_s, cpu_s: o.wall_s.ceil() as u64, ..Default::default() },
-    });
+    let limits = Limits { wall_s: o.wall_s, cpu_s: o.wall_s.ceil() as u64, ..Default::default() };
+    let mut wc = WorkerConfig::new(&gym.instance, &scratch, &run_dir.join("logs"), &root, limits);
+    wc.robot_config.clone_from(&o.setup.robot_config);
+    let mut worker = Worker::new(wc);
     let outcome = (|| -> anyhow::Result<_> {
         let reset = worker.host_cmd(json!({"cmd": "reset"}))?;
         if reset["ok"] != 1 {

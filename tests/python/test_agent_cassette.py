@@ -120,12 +120,12 @@ def test_a_recorded_episode_replays_without_its_endpoint(recorded: tuple[dict, P
 def test_a_replay_whose_requests_changed_fails_naming_the_key_and_the_difference(
         recorded: tuple[dict, Path], tmp_path: Path) -> None:
     _, run = recorded
-    # One decision fewer changes "Decisions left" in the second request.
+    # One decision fewer changes the budget the first message states.
     out = episode(tmp_path / "changed", f"replay:{run / 'cassette.jsonl'}", "--max-decisions", "49")
     assert out.returncode != 0 and not out.stdout.strip(), out.stdout
     err = out.stderr
     assert re.search(r"request [0-9a-f]{64} is not in the cassette", err), err[-2000:]
-    assert "messages[2].parts[0] differs" in err and "Decisions left: 49" in err and "Decisions left: 48" in err, err[-2000:]
+    assert "messages[0].parts[0] differs" in err and "Budgets: 50 decisions" in err and "Budgets: 49 decisions" in err, err[-2000:]
     assert not (tmp_path / "changed" / "result.json").exists()  # not reported as a result
     assert "not in the cassette" in rounds(tmp_path / "changed")[-1]["error"]
 

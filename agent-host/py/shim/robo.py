@@ -9,7 +9,6 @@ import socket
 import struct
 from typing import Any
 
-SCHEMA_VERSION = 6
 _FD = 4
 _sock: socket.socket | None = None
 
@@ -64,3 +63,10 @@ def post_actions(cmd: Any) -> int:
 
 def instance() -> str:
     return _call("instance")
+
+
+def __getattr__(name: str) -> Any:
+    # The real module's interface version, asked of the proxy (which runs the real module).
+    if name == "SCHEMA_VERSION":
+        return _call("schema_version")
+    raise AttributeError(f"module 'robo' has no attribute {name!r}")

@@ -65,7 +65,7 @@ from .report import PerceptionWarning
 from .tracking import Track, Tracker
 from .grasps import Grasp, grasp_rotation, propose_grasps
 from .placing import Marking, Placement, find_markings, place_poses
-from .images import crop_image, draw_markers, encode_png, fingertip_points, project, save_png, visible
+from .images import crop_image, draw_markers, encode_png, fingertip_points, project, save_png, show, visible
 from .robot import (PANDA, RobotCapsule, RobotDescription, RobotJoint, RobotShapes, capsule_distances, link_poses,
                     robot_mask, robot_shapes, rpy_to_matrix, tcp_matrix, tcp_pose)
 
@@ -90,7 +90,7 @@ __all__ = [
     # placing
     "Placement", "place_poses", "Marking", "find_markings",
     # images
-    "project", "visible", "fingertip_points", "draw_markers", "crop_image", "save_png", "encode_png",
+    "project", "visible", "fingertip_points", "draw_markers", "crop_image", "save_png", "encode_png", "show",
     # the robot's own body (self-filter)
     "PANDA", "RobotDescription", "RobotJoint", "RobotCapsule", "RobotShapes", "link_poses", "tcp_matrix",
     "tcp_pose", "robot_shapes", "capsule_distances", "robot_mask", "rpy_to_matrix",

@@ -167,6 +167,34 @@ def save_png(path: Union[str, os.PathLike], image: np.ndarray, crop: Optional[Se
     return path
 
 
+SHOW_DIR = "show"
+"""The folder (in a stage program's scratch folder) whose PNG files the host attaches to the
+model's next request."""
+MAX_SHOWN = 4
+"""Images the host attaches per program; more are not shown (the feedback names them)."""
+MAX_SHOWN_SIDE = 1280
+"""Largest width or height of an image the host attaches, pixels."""
+
+
+def show(image: np.ndarray, name: str = "image", crop: Optional[Sequence[float]] = None, scale: int = 1) -> str:
+    """Hands ``image`` (optionally cropped and enlarged, see `crop_image`) to the model: written as
+    ``show/<NN>-<name>.png`` in the current folder, which the host attaches to the next request
+    after the fresh camera images (in a stage program; elsewhere it is just a file). Returns the
+    path. ValueError for a bad image, crop or scale, a result wider or taller than
+    ``MAX_SHOWN_SIDE``, or a program's ``MAX_SHOWN + 1``-th image (nothing is written then).
+    """
+    a = crop_image(image, crop, scale)
+    if max(a.shape[:2]) > MAX_SHOWN_SIDE:
+        raise ValueError(f"show: the image is {a.shape[1]}x{a.shape[0]} pixels; at most {MAX_SHOWN_SIDE} on a side "
+                         f"are shown: crop it or use a smaller scale")
+    os.makedirs(SHOW_DIR, exist_ok=True)
+    taken = sorted(n for n in os.listdir(SHOW_DIR) if n.endswith(".png") and not n.startswith("."))
+    if len(taken) >= MAX_SHOWN:
+        raise ValueError(f"show: at most {MAX_SHOWN} images are shown per program ({', '.join(taken)} already)")
+    clean = "".join(c if c.isascii() and (c.isalnum() or c in "-_") else "-" for c in str(name))[:40] or "image"
+    return save_png(os.path.join(SHOW_DIR, f"{len(taken) + 1:02d}-{clean}.png"), a)
+
+
 # ---------------------------------------------------------------------------------------------
 # Projection
 # ---------------------------------------------------------------------------------------------
