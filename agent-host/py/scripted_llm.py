@@ -47,6 +47,8 @@ Fault modes for client tests, selected by a path prefix before the API path, e.g
 * ``endless``: 200, ``Transfer-Encoding: chunked``, 64 KiB chunks of spaces until the client
   disconnects.
 * ``nojson``: 200 with an HTML body.
+* ``cutoff``: the scripted answer cut in half, as an endpoint stops one at its token limit
+  (OpenAI ``finish_reason: "length"``, Anthropic ``stop_reason: "max_tokens"``).
 
 ``--log DIR`` writes each request body to ``DIR/request-NNN.json`` (base64 image data replaced
 by its length: Anthropic ``source.data`` becomes an integer, an OpenAI data URL becomes
@@ -72,7 +74,7 @@ SLOW_S = 30.0
 ENDLESS_CHUNK = b" " * (64 * 1024)
 MAX_BODY = 256 * 1024 * 1024
 EXHAUSTED = "<stop>script exhausted</stop>"
-FAULTS = ("429once", "500once", "slow", "malformed", "endless", "nojson", "nocache")
+FAULTS = ("429once", "500once", "slow", "malformed", "endless", "nojson", "nocache", "cutoff")
 OPENAI_PATH = "/v1/chat/completions"
 ANTHROPIC_PATH = "/v1/messages"
 ANTHROPIC_VERSIONS = ("2023-06-01", "2023-01-01")
@@ -552,6 +554,8 @@ class Handler(BaseHTTPRequestHandler):
             return self._send(400, payload, n)
 
         text = self.state.responses[k] if k < len(self.state.responses) else EXHAUSTED
+        if mode == "cutoff":
+            text = text[: len(text) // 2]
         prompt = sum(m[1] for m in msgs)
         cached = self.state.cached_prefix(api, msgs)
         completion = _text_tokens(text)
@@ -565,7 +569,7 @@ class Handler(BaseHTTPRequestHandler):
             payload = {"id": f"chatcmpl-scripted-{n:06d}", "object": "chat.completion",
                        "created": int(time.time()), "model": body["model"],
                        "choices": [{"index": 0, "message": {"role": "assistant", "content": text},
-                                    "finish_reason": "stop"}],
+                                    "finish_reason": "length" if mode == "cutoff" else "stop"}],
                        "usage": usage}
         else:
             if no_cache:
@@ -575,7 +579,8 @@ class Handler(BaseHTTPRequestHandler):
                          "cache_read_input_tokens": cached, "cache_creation_input_tokens": 0}
             payload = {"id": f"msg_scripted_{n:06d}", "type": "message", "role": "assistant",
                        "model": body["model"], "content": [{"type": "text", "text": text}],
-                       "stop_reason": "end_turn", "stop_sequence": None, "usage": usage}
+                       "stop_reason": "max_tokens" if mode == "cutoff" else "end_turn", "stop_sequence": None,
+                       "usage": usage}
         self._send(200, payload, n)
 
     def _endless(self, n):

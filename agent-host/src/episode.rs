@@ -625,3 +625,42 @@ pub fn newest_verdict(trace_dir: &Path, after: usize, wait: Duration) -> anyhow:
         std::thread::sleep(Duration::from_millis(50));
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn encode(w: u32, h: u32, color: png::ColorType, depth: png::BitDepth, data: &[u8]) -> Vec<u8> {
+        let mut out = Vec::new();
+        {
+            let mut e = png::Encoder::new(&mut out, w, h);
+            e.set_color(color);
+            e.set_depth(depth);
+            e.write_header().expect("header").write_image_data(data).expect("data");
+        }
+        out
+    }
+
+    #[test]
+    fn shown_images_are_written_again_as_8_bit_and_oversized_or_broken_ones_refused() {
+        // 16-bit grey comes back 8-bit RGB of the same size.
+        let grey16 = encode(3, 2, png::ColorType::Grayscale, png::BitDepth::Sixteen, &[0x80; 12]);
+        let (png, w, h) = normalise_png(&grey16).expect("a PNG");
+        assert_eq!((w, h), (3, 2));
+        let info = png::Decoder::new(std::io::Cursor::new(&png)).read_info().expect("decodes").info().clone();
+        assert_eq!((info.color_type, info.bit_depth), (png::ColorType::Rgb, png::BitDepth::Eight));
+        let big = encode(MAX_SHOWN_SIDE + 1, 1, png::ColorType::Grayscale, png::BitDepth::Eight, &[0; 1281]);
+        assert!(normalise_png(&big).unwrap_err().contains("1281x1 pixels"));
+        assert!(normalise_png(b"\x89PNG\r\n\x1a\nnot really").unwrap_err().starts_with("not a PNG"));
+        let cut = &grey16[..grey16.len() - 20];
+        assert!(normalise_png(cut).is_err(), "a file cut short is refused");
+    }
+
+    #[test]
+    fn a_reply_ending_inside_a_tag_runs_only_when_the_model_ended_it() {
+        let d = Decision::parse("<observation>o</observation><code>\nprint(1)\n");
+        assert_eq!((d.code.as_deref(), d.unclosed.as_slice()), (Some("print(1)"), &["code".to_string()][..]));
+        assert!(d.problem(false).is_none());
+        assert!(d.problem(true).is_some_and(|p| p.contains("inside <code>")));
+    }
+}

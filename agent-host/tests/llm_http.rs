@@ -228,3 +228,31 @@ fn a_recorded_conversation_replays_without_the_server() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn an_answer_cut_off_at_the_token_limit_is_marked_and_refused() {
+    let s = Server::start();
+    for provider in ["openai", "anthropic"] {
+        let whole = s.client(provider, "", 30.0, 0).complete("sys", &conversation(0)).expect("whole");
+        assert!(!whole.truncated, "{provider}");
+        let cut = s.client(provider, "cutoff", 30.0, 0).complete("sys", &conversation(0)).expect("cut");
+        assert!(cut.truncated && cut.text.len() < whole.text.len(), "{provider}");
+        let d = agent_host::episode::Decision::parse(&cut.text);
+        let why = d.problem(cut.truncated).expect("a cut-off reply is not used");
+        assert!(why.contains("token limit"), "{why}");
+        // The same text ending by itself runs: an unclosed tag alone is no reason to refuse.
+        assert!(d.problem(false).is_none());
+    }
+}
+
+#[test]
+fn anthropic_requests_mark_the_system_prompt_and_the_conversation_for_its_cache() {
+    let s = Server::start();
+    let body = s.client("anthropic", "", 30.0, 0).body("sys", &conversation(1));
+    assert_eq!(body["system"][0]["cache_control"]["type"], "ephemeral");
+    let last = body["messages"].as_array().and_then(|m| m.last()).expect("messages");
+    assert_eq!(last["content"].as_array().and_then(|c| c.last()).expect("blocks")["cache_control"]["type"], "ephemeral");
+    assert_eq!(body.to_string().matches("cache_control").count(), 2, "two of the four marks a request may hold");
+    // OpenAI-compatible servers cache a repeated prefix by themselves: no marks.
+    assert!(!s.client("openai", "", 30.0, 0).body("sys", &conversation(1)).to_string().contains("cache_control"));
+}

@@ -200,3 +200,42 @@ def test_every_document_module_and_hand_over_the_prompt_names_works(tmp_path: Pa
     assert "Its chunks: 1 executed, 0 failed, 1 rejected" in text
     assert 'Its last robot call: post_actions() → "rejected"' in text
     check_feedback_is_true(run)
+
+
+def test_the_scripted_server_caches_anthropic_prompts_only_up_to_cache_marks(tmp_path: Path) -> None:
+    """Anthropic caches nothing unmarked; OpenAI-compatible servers cache a repeated prefix by
+    themselves. The scripted server (our stand-in for both) must count it the same way, or the
+    cache figures of offline runs would flatter requests that carry no marks."""
+    import urllib.request
+
+    script = tmp_path / "s.json"
+    script.write_text(json.dumps({"gym": "x", "model": "m", "responses": ["<stop>a</stop>"] * 4}))
+    srv = subprocess.Popen([str(ROOT / ".venv/bin/python"), str(ROOT / "agent-host/py/scripted_llm.py"),
+                            "--script", str(script), "--port", "0"], stdout=subprocess.PIPE, text=True)
+    try:
+        port = int(srv.stdout.readline().split()[1])
+
+        def ask(body: dict) -> dict:
+            req = urllib.request.Request(f"http://127.0.0.1:{port}/v1/messages", json.dumps(body).encode(),
+                                         {"x-api-key": "k", "anthropic-version": "2023-06-01",
+                                          "content-type": "application/json"})
+            return json.loads(urllib.request.urlopen(req, timeout=30).read())["usage"]
+
+        def body(turns: int, marks: bool) -> dict:
+            block = lambda t: {"type": "text", "text": t * 400}  # noqa: E731
+            msgs = [{"role": "user", "content": [block("u")]}]
+            for _ in range(turns):
+                msgs += [{"role": "assistant", "content": [block("a")]}, {"role": "user", "content": [block("v")]}]
+            system = [block("s")]
+            if marks:
+                system[0]["cache_control"] = {"type": "ephemeral"}
+                msgs[-1]["content"][-1]["cache_control"] = {"type": "ephemeral"}
+            return {"model": "m", "max_tokens": 10, "system": system, "messages": msgs}
+
+        ask(body(0, False))
+        assert ask(body(1, False))["cache_read_input_tokens"] == 0
+        ask(body(0, True))
+        assert ask(body(1, True))["cache_read_input_tokens"] == 200  # the marked system + first message
+    finally:
+        srv.terminate()
+        srv.wait(timeout=10)
