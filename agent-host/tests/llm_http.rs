@@ -251,7 +251,10 @@ fn anthropic_requests_mark_the_system_prompt_and_the_conversation_for_its_cache(
     let body = s.client("anthropic", "", 30.0, 0).body("sys", &conversation(1));
     assert_eq!(body["system"][0]["cache_control"]["type"], "ephemeral");
     let last = body["messages"].as_array().and_then(|m| m.last()).expect("messages");
-    assert_eq!(last["content"].as_array().and_then(|c| c.last()).expect("blocks")["cache_control"]["type"], "ephemeral");
+    assert_eq!(
+        last["content"].as_array().and_then(|c| c.last()).expect("blocks")["cache_control"]["type"],
+        "ephemeral"
+    );
     assert_eq!(body.to_string().matches("cache_control").count(), 2, "two of the four marks a request may hold");
     // OpenAI-compatible servers cache a repeated prefix by themselves: no marks.
     assert!(!s.client("openai", "", 30.0, 0).body("sys", &conversation(1)).to_string().contains("cache_control"));
