@@ -246,6 +246,9 @@ pub struct Feedback<'a> {
     pub cameras: &'a [String],
 }
 
+/// Refused hand-over files named one by one in the feedback; the rest are counted.
+const MAX_REFUSED_LINES: usize = 8;
+
 fn count(m: &std::collections::BTreeMap<String, u64>, k: &str) -> u64 {
     m.get(k).copied().unwrap_or(0)
 }
@@ -328,10 +331,19 @@ pub fn feedback_text(f: &Feedback) -> String {
     } else {
         t.push_str(&format!(", then the images it showed: {}.\n", shown.join(", ")));
     }
-    for s in f.shown {
-        if let Shown::Refused { name, why } = s {
-            t.push_str(&format!("Not shown: {name}: {why}\n"));
-        }
+    let refused: Vec<_> = f
+        .shown
+        .iter()
+        .filter_map(|s| match s {
+            Shown::Refused { name, why } => Some((name, why)),
+            Shown::Image { .. } => None,
+        })
+        .collect();
+    for (name, why) in refused.iter().take(MAX_REFUSED_LINES) {
+        t.push_str(&format!("Not shown: {}: {why}\n", name.escape_debug()));
+    }
+    if refused.len() > MAX_REFUSED_LINES {
+        t.push_str(&format!("Not shown either: {} more file(s) in show/.\n", refused.len() - MAX_REFUSED_LINES));
     }
     t.push_str(&format!("Decisions left: {} of {}.\n", f.decisions_left, f.max_decisions));
     t

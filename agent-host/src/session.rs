@@ -419,6 +419,7 @@ fn summarize(o: &EpisodeOpts, dir: &Path, rows: Vec<Value>) -> anyhow::Result<Va
         "success_rate": rows.iter().filter(|r| r["success"] == true).count() as f64 / n,
         "responses_mean": sum("responses") / n,
         "tokens_in": sum("tokens_in"), "tokens_cached": sum("tokens_cached"), "tokens_out": sum("tokens_out"),
+        "tokens_in_estimated": sum("tokens_in_estimated"), "tokens_cached_estimated": sum("tokens_cached_estimated"),
         "wall_s": sum("wall_s"), "model_s": sum("model_s"), "exec_s": sum("exec_s"), "overhead_s": sum("overhead_s"),
         "run_dir": dir.display().to_string(),
         // Episodes that could not run at all: an error, or no answer from the endpoint ever.
@@ -426,7 +427,7 @@ fn summarize(o: &EpisodeOpts, dir: &Path, rows: Vec<Value>) -> anyhow::Result<Va
             && r["stop_reason"].as_str().is_some_and(|s| s.starts_with(crate::episode::ENDPOINT_FAILED)))).count(),
         "per_episode": rows,
     });
-    std::fs::create_dir_all(&dir)?;
+    std::fs::create_dir_all(dir)?;
     let tmp = dir.join("batch.json.tmp");
     std::fs::write(&tmp, serde_json::to_vec_pretty(&summary)?)?;
     std::fs::rename(&tmp, dir.join("batch.json"))?;
