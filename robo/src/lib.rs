@@ -295,8 +295,10 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>, raw: boo
         let k = PyDict::new(py);
         k.set_item("fx", h.fx * sx)?;
         k.set_item("fy", h.fy * sy)?;
-        k.set_item("cx", h.cx * sx)?;
-        k.set_item("cy", h.cy * sy)?;
+        // Pixel-index coordinates (pixel [v, u] is the point (u, v)): a scale acts on pixel
+        // edges, which lie half a pixel from the centres, as image::resize_rgb samples.
+        k.set_item("cx", (h.cx + 0.5) * sx - 0.5)?;
+        k.set_item("cy", (h.cy + 0.5) * sy - 0.5)?;
         k.set_item("width", w)?;
         k.set_item("height", hgt)?;
         intr.set_item(&name, k)?;

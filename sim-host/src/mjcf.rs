@@ -531,12 +531,31 @@ pub fn compile(scene: &Scene, urdf_xml: &str, model: &controllers::RobotModel) -
     writeln!(o, "    </body>\n  </worldbody>").ok();
 
     // The robot is bolted to the table: its base never collides with the world's geometry.
-    // Its first moving link only turns about the mount axis, and its collision shape (written
-    // for self-collision checks) reaches down into the mount, so it is excluded too.
+    // The base is the root link and every link fixed to it (a URDF may mount `link0` on a
+    // `world` or `base` link). Its first moving links only turn about the mount axis, and their
+    // collision shapes (written for self-collision checks) reach down into the mount, so they
+    // are excluded too.
     writeln!(o, "  <contact>").ok();
-    let first: Vec<&str> =
-        robot.joints.iter().filter(|j| j.parent.link == root.name).map(|j| j.child.link.as_str()).collect();
-    for b in std::iter::once(root.name.as_str()).chain(first) {
+    let mut base: Vec<&str> = vec![root.name.as_str()];
+    let mut i = 0;
+    while i < base.len() {
+        let parent = base[i];
+        base.extend(
+            robot
+                .joints
+                .iter()
+                .filter(|j| j.parent.link == parent && matches!(j.joint_type, urdf_rs::JointType::Fixed))
+                .map(|j| j.child.link.as_str()),
+        );
+        i += 1;
+    }
+    let first: Vec<&str> = robot
+        .joints
+        .iter()
+        .filter(|j| base.contains(&j.parent.link.as_str()) && !matches!(j.joint_type, urdf_rs::JointType::Fixed))
+        .map(|j| j.child.link.as_str())
+        .collect();
+    for b in base.iter().copied().chain(first) {
         writeln!(o, "    <exclude body1=\"world\" body2=\"{b}\"/>").ok();
     }
     // A fixture's moving part never collides with its own static parts: the joint's range is its

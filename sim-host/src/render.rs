@@ -32,28 +32,70 @@ pub struct RenderConfig {
     pub rate_hz: f64,
 }
 
-/// Pinhole intrinsics of a MuJoCo camera (square pixels, principal point at the centre).
+/// Pinhole intrinsics of a MuJoCo camera (square pixels), in pixel-index coordinates: pixel
+/// `(u, v)` (array index `[v, u]`) is the point `(u, v)`, its centre, as OpenCV and RealSense
+/// count. MuJoCo's frustum is centred on the image, whose centre lies between pixels
+/// `w/2 - 1` and `w/2`: the principal point is `((w - 1) / 2, (h - 1) / 2)`. (Counting from
+/// pixel edges, `w / 2`, put every back-projected ray half a pixel off.)
 pub fn intrinsics(spec: &CameraSpec) -> (f64, f64, f64, f64) {
     let f = 0.5 * spec.height as f64 / (0.5 * spec.fovy_deg.to_radians()).tan();
-    (f, f, spec.width as f64 / 2.0, spec.height as f64 / 2.0)
+    (f, f, (spec.width as f64 - 1.0) / 2.0, (spec.height as f64 - 1.0) / 2.0)
 }
 
 /// Offscreen renderer with its own copy of the model's kinematics.
+///
+/// RGB is drawn with the model's multisampling (anti-aliased edges: each pixel the mean of its
+/// samples, centred on the pixel). Depth comes from a second pass without multisampling: read
+/// back from a multisampled buffer, a pixel's depth is one of its samples (llvmpipe: sample 0,
+/// 0.375 px below and 0.125 px left of the centre), so a sloped surface read off its depth at
+/// the pixel's centre (agentview's table 0.9 mm short on the median, the wrist's 0.3 mm long)
+/// and back-projected surfaces moved (with the old principal point, agentview's table 1.7 mm
+/// high, the wrist's 0.4-0.7 mm low). Without multisampling every depth is the surface at the
+/// pixel's centre, whichever GL driver renders.
 pub struct Cameras {
     renderer: MjRenderer,
+    /// Depth, single-sampled (None: no depth wanted).
+    depth: Option<MjRenderer>,
     data: MjData<Arc<MjModel>>,
     model: Arc<MjModel>,
+}
+
+fn egl_error(e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow::anyhow!("cannot start headless rendering (EGL): {e}; install Mesa's EGL (make deps)")
 }
 
 impl Cameras {
     /// A renderer for images of `width × height`, with depth when `depth` is set.
     pub fn new(model: Arc<MjModel>, width: u32, height: u32, depth: bool) -> anyhow::Result<Self> {
-        let renderer =
-            MjRenderer::builder().width(width).height(height).rgb(true).depth(depth).build(&model).map_err(|e| {
-                anyhow::anyhow!("cannot start headless rendering (EGL): {e}; install Mesa's EGL (make deps)")
-            })?;
+        let renderer = MjRenderer::builder()
+            .width(width)
+            .height(height)
+            .rgb(true)
+            .depth(false)
+            .build(&model)
+            .map_err(egl_error)?;
+        let depth = if depth {
+            // The same model but single-sampled and without shadow maps (they only colour). Its
+            // layout equals the model's, so the pass draws from the same `MjData`.
+            let mut single = MjModel::clone(&model);
+            single.vis_mut().quality.offsamples = 0;
+            single.light_castshadow_mut().iter_mut().for_each(|c| *c = false);
+            single.light_active_mut().iter_mut().for_each(|c| *c = false);
+            single.vis_mut().headlight.active = 0;
+            Some(
+                MjRenderer::builder()
+                    .width(width)
+                    .height(height)
+                    .rgb(false)
+                    .depth(true)
+                    .build(&single)
+                    .map_err(egl_error)?,
+            )
+        } else {
+            None
+        };
         let data = MjData::new(model.clone());
-        Ok(Self { renderer, data, model })
+        Ok(Self { renderer, depth, data, model })
     }
 
     /// Poses the scene at `qpos` (from a model of the same size).
@@ -72,11 +114,13 @@ impl Cameras {
     /// Renders camera `cam_id`: RGB bytes (row-major, top row first) and, when enabled, depth
     /// in metres along the optical axis.
     pub fn render(&mut self, cam_id: usize) -> anyhow::Result<(&[u8], Option<&[f32]>)> {
-        self.renderer.set_camera(MjvCamera::new_fixed(cam_id));
-        self.renderer.sync_data(&mut self.data).map_err(|e| anyhow::anyhow!("render sync: {e}"))?;
-        self.renderer.render().map_err(|e| anyhow::anyhow!("render: {e}"))?;
+        for r in std::iter::once(&mut self.renderer).chain(self.depth.as_mut()) {
+            r.set_camera(MjvCamera::new_fixed(cam_id));
+            r.sync_data(&mut self.data).map_err(|e| anyhow::anyhow!("render sync: {e}"))?;
+            r.render().map_err(|e| anyhow::anyhow!("render: {e}"))?;
+        }
         let rgb = self.renderer.rgb_flat().ok_or_else(|| anyhow::anyhow!("renderer produced no RGB"))?;
-        Ok((rgb, self.renderer.depth_flat()))
+        Ok((rgb, self.depth.as_ref().and_then(|r| r.depth_flat())))
     }
 
     /// World pose of a body: (position, quaternion x, y, z, w).

@@ -167,15 +167,23 @@ impl Sim {
         };
         let robot_owner = owner_of_name("robot").unwrap_or(u16::MAX);
         layout.robot_owner = robot_owner;
-        for (g, &b) in geom_body.iter().enumerate() {
-            let mut top = b as usize;
+        let top_of = |b: usize| {
+            let mut top = b;
             while top != 0 && parent[top] != 0 {
                 top = parent[top] as usize;
             }
+            top
+        };
+        // The robot's tree hangs from the URDF's root link, which need not be the link the
+        // first joint moves from (a URDF may mount `link0` on a `world` or `base` link): every
+        // geom under that root is the robot's, the arm's, the hand's and the fingers'.
+        let robot_top = top_of(layout.base_body);
+        for (g, &b) in geom_body.iter().enumerate() {
+            let top = top_of(b as usize);
             let owner = if top == 0 {
                 let name = m.id_to_name(MjtObjBase::mjOBJ_GEOM, g).unwrap_or_default();
                 owner_of_name(name).unwrap_or(u16::MAX)
-            } else if top == layout.base_body {
+            } else if top == robot_top {
                 robot_owner
             } else {
                 let name = m.id_to_name(MjtObjBase::mjOBJ_BODY, top).unwrap_or_default();

@@ -63,7 +63,8 @@ def test_both_images_decode_at_640x480_and_show_the_scene(wall) -> None:
         red = sum(1 for i in range(0, len(px), 3) if px[i] > 150 and px[i + 1] < 80 and px[i + 2] < 80)
         assert red > 30, (name, red)
     k = state["camera_intrinsics"]["agentview"]
-    assert (k["width"], k["height"], k["cx"], k["cy"]) == (640, 480, 320.0, 240.0)
+    # principal point in pixel-index coordinates: the image centre lies between pixels 319 and 320
+    assert (k["width"], k["height"], k["cx"], k["cy"]) == (640, 480, 319.5, 239.5)
     assert len(state["camera_extrinsics"]["wrist"]) == 4
 
 
