@@ -68,20 +68,33 @@ fn evidence<'a>(skill: &'a Skill, id: &str) -> anyhow::Result<&'a Evidence> {
         .with_context(|| format!("skill {}: stage source {id} is not among its evidence", skill.id))
 }
 
-/// The targets a stage's source round sent, keyed by the stage's rule ids, and that round's
-/// (first observation, reference TCP).
+/// Where a stage's rules are bound again: the observation its source round's motion started
+/// from, the reference TCP then, and the observations of the episode before it (the tracker
+/// replays them so objects keep the names extraction gave them).
+#[derive(Debug, Clone)]
+pub struct BindSite {
+    pub obs: PathBuf,
+    pub reference: Value,
+    pub history: Vec<PathBuf>,
+}
+
+/// The targets a stage's source round sent, keyed by the stage's rule ids, and where they are
+/// bound again ([`BindSite`]). The round's motion is what extraction related: its calls after
+/// its own reset(), if it sent one.
 pub fn source_targets(
     root: &Path,
     skill: &Skill,
     stage: &Stage,
     src: &str,
-) -> anyhow::Result<(BTreeMap<String, Vec<f64>>, (PathBuf, Value))> {
+) -> anyhow::Result<(BTreeMap<String, Vec<f64>>, BindSite)> {
     let ev = evidence(skill, src)?;
     let Some(dir) = &ev.record else { bail!("evidence {src} names no record folder") };
     let rec = RunRecord::open(Path::new(dir))?;
     let Some(round) = rec.rounds.iter().find(|r| r.n == ev.round) else { bail!("{dir} has no round {}", ev.round) };
-    let obs = round.obs_before.clone().with_context(|| format!("{dir} round {} has no first observation", ev.round))?;
-    let g = tools::call(root, "relate", &json!({"obs": obs, "calls": round.calls}))?;
+    let obs = rec.motion_obs(ev.round).map_err(|why| anyhow::anyhow!("{dir} round {}: {why}", ev.round))?;
+    let mut history = rec.observations_upto(&obs);
+    history.pop();
+    let g = tools::call(root, "targets", &json!({"obs": obs, "calls": round.motion_calls()}))?;
     let moves: Vec<&str> = g["steps"]
         .as_array()
         .map(Vec::as_slice)
@@ -103,7 +116,7 @@ pub fn source_targets(
             g["targets"][m].as_array().map(|a| a.iter().filter_map(Value::as_f64).collect()).unwrap_or_default();
         out.insert((*rule).to_string(), t);
     }
-    Ok((out, (obs, g["reference"].clone())))
+    Ok((out, BindSite { obs, reference: g["reference"].clone(), history }))
 }
 
 /// Checks (a) and (b); the reasons it fails, empty when it passes.
@@ -126,9 +139,8 @@ pub fn check(root: &Path, skill: &Skill, o: &AdmitOpts) -> anyhow::Result<(Vec<S
             continue;
         };
         match source_targets(root, skill, stage, src) {
-            Ok((targets, (obs, reference))) => {
-                sources.push(json!({"obs": obs, "reference": reference, "targets": targets}))
-            }
+            Ok((targets, at)) => sources
+                .push(json!({"obs": at.obs, "history": at.history, "reference": at.reference, "targets": targets})),
             Err(e) => problems.push(format!("stage {}: {e:#}", stage.name)),
         }
     }

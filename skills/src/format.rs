@@ -94,6 +94,9 @@ pub enum Feature {
     TopFace,
     SupportPlane,
     MajorAxis,
+    /// The object as the hand holds it: the TCP's frame when the stage begins, laid level (a
+    /// handle being pulled; bound only while the gripper holds something).
+    InHand,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -134,6 +137,29 @@ pub struct Stop {
     pub force_n: Option<f64>,
 }
 
+/// An axis of a rule's anchor frame.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum Axis {
+    X,
+    Y,
+    Z,
+}
+
+/// A second object (or marking) the target is also about: along the named axes of the rule's
+/// anchor frame, the actor's coordinate is measured from this feature instead of from the
+/// anchor ("3 cm past the line, level with the block": anchor the line, `along: {"x": 0.0}`
+/// from the block). Without it a rule could only say where the target is from one object.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SecondAnchor {
+    /// An object role of the skill (a marking included).
+    pub object: String,
+    pub feature: Feature,
+    /// Axis of the anchor frame → the actor's coordinate along it from this feature, m.
+    pub along: BTreeMap<Axis, f64>,
+}
+
 /// Put the actor at `offset_m` from the anchor, turned `yaw_rad` about the anchor's z, tilted by
 /// `tilt_rad`; approach and stop as given; `gripper` is commanded while moving.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -148,6 +174,9 @@ pub struct MotionRule {
     pub approach: Approach,
     pub gripper: f64,
     pub stop: Stop,
+    /// Optional: the coordinates along some axes taken from a second object (see [`SecondAnchor`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub second_anchor: Option<SecondAnchor>,
 }
 
 /// One step of a stage, told apart by its key.
@@ -213,7 +242,12 @@ pub struct Check {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Stage {
+    /// A short name (a few words as an id: the rule ids of the stage start with it).
     pub name: String,
+    /// What the stage does, in the words of whoever named it (extraction keeps the model's whole
+    /// stage text here). Absent in files written before it existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub description: Option<String>,
     pub steps: Vec<Step>,
     #[serde(default)]
     pub checks: Vec<Check>,
@@ -325,28 +359,56 @@ pub struct Skill {
     pub history: Vec<Change>,
 }
 
-fn id_ok(s: &str) -> bool {
+/// The longest id (skill, rule, object role), bytes.
+pub const ID_MAX: usize = 64;
+
+/// Whether `s` is a valid id: 1 to [`ID_MAX`] of a-z, 0-9, '_' and '-'.
+pub fn id_ok(s: &str) -> bool {
     !s.is_empty()
-        && s.len() <= 64
+        && s.len() <= ID_MAX
         && s.bytes().all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_' || b == b'-')
 }
 
-/// A lowercase slug of `text` usable as an id ("Pick & place!" -> "pick-place").
+/// A lowercase slug of `text` usable as an id ("Pick & place!" -> "pick-place"), at most
+/// [`ID_MAX`] bytes; "skill" when nothing of it is usable.
 pub fn slug(text: &str) -> String {
-    let mut out = String::new();
-    for c in text.chars().flat_map(char::to_lowercase) {
-        if c.is_ascii_alphanumeric() || c == '_' {
-            out.push(c);
-        } else if !out.ends_with('-') && !out.is_empty() {
-            out.push('-');
-        }
-    }
-    let out: String = out.trim_end_matches('-').chars().take(64).collect();
-    if out.is_empty() {
+    let s = slug_within(text, ID_MAX, '-');
+    if s.is_empty() {
         "skill".into()
     } else {
-        out
+        s
     }
+}
+
+/// `text` as an id of at most `max` bytes: lowercase ASCII letters and digits kept, accents
+/// dropped from Latin letters (é -> e), '-' and '_' kept, every other run of characters one
+/// `sep`; cut at a separator where one falls in the last third, so a
+/// long text ends on a whole word. Empty when nothing of it is usable.
+pub fn slug_within(text: &str, max: usize, sep: char) -> String {
+    let mut out = String::new();
+    for c in text.chars().flat_map(char::to_lowercase) {
+        let c = fold_accent(c);
+        if c.is_ascii_alphanumeric() {
+            out.push(c);
+        } else if !out.is_empty() && !out.ends_with(['-', '_']) {
+            // A separator the text already has stays what it was ("pick_place" is an id).
+            out.push(if c == '-' || c == '_' { c } else { sep });
+        }
+    }
+    let out = out.trim_end_matches(['-', '_']);
+    if out.len() <= max {
+        return out.to_string();
+    }
+    let cut = &out[..max];
+    let at = cut.rfind(['-', '_']).filter(|&i| i >= max * 2 / 3).unwrap_or(max);
+    out[..at].trim_end_matches(['-', '_']).to_string()
+}
+
+/// The unaccented ASCII letter of a Latin letter with a diacritic (the common ones); others as given.
+fn fold_accent(c: char) -> char {
+    const FROM: &str = "àáâãäåāçćčďèéêëēěìíîïīñńňòóôõöøōřśšťùúûüūůýÿžźż";
+    const TO: &str = "aaaaaaacccdeeeeeeiiiiinnnooooooorsstuuuuuuyyzzz";
+    FROM.chars().position(|f| f == c).and_then(|i| TO.chars().nth(i)).unwrap_or(c)
 }
 
 impl Skill {
@@ -440,6 +502,26 @@ impl Skill {
                 && !r.stop.force_n.is_some_and(|f| f.is_finite() && f > 0.0 && f <= 60.0)
             {
                 return Err(self.err(format!("{at}.stop.force_n"), "a contact stop needs force_n in (0, 60] N"));
+            }
+            if let Some(second) = &r.second_anchor {
+                if !self.objects.contains_key(&second.object) {
+                    return Err(self.err(
+                        format!("{at}.second_anchor.object"),
+                        format!("'{}' is no object role of the skill", second.object),
+                    ));
+                }
+                if second.along.is_empty() {
+                    return Err(self.err(
+                        format!("{at}.second_anchor.along"),
+                        "names at least one axis of the anchor frame (x, y, z) with its distance from the second object",
+                    ));
+                }
+                if second.along.values().any(|v| !(v.is_finite() && v.abs() <= MAX_OFFSET_M)) {
+                    return Err(self.err(
+                        format!("{at}.second_anchor.along"),
+                        format!("each distance is finite and at most {MAX_OFFSET_M} m from the second object"),
+                    ));
+                }
             }
         }
         if self.procedure.is_empty() {

@@ -5,7 +5,10 @@
 //! 2. rank — BM25 relevance of the instruction to the skill's name, summary, keywords, task kind
 //!    and stage names, times a conservative success estimate (the Wilson lower bound of its
 //!    natively judged runs); ties by id;
-//! 3. take the best few whose rendered text fits a token budget.
+//! 3. take the best few whose rendered text fits a token budget. Each rule is shown in its
+//!    anchor's frame, said to be so, and with the base-frame pose it binds to in the episode's
+//!    first observation (a model must not read anchor-relative yaws as base-frame angles).
+//!
 //! The choice, with every score and every reason for leaving one out, is logged in the episode
 //! record (skills.json, shown by the viewer) and in the library's events.
 
@@ -95,6 +98,19 @@ fn bm25(query: &[String], docs: &[Vec<String>]) -> Vec<f64> {
 
 /// The skills section text for one skill.
 pub fn render(s: &Skill) -> String {
+    render_bound(s, &Value::Null)
+}
+
+/// A pose as the prompt shows it: 3 decimals.
+fn pose_text(v: &Value) -> String {
+    let nums: Vec<String> =
+        v.as_array().into_iter().flatten().filter_map(Value::as_f64).map(|x| format!("{x:.3}")).collect();
+    format!("[{}]", nums.join(", "))
+}
+
+/// The skills section text for one skill; `bound` (rule id → the pose it binds to in the
+/// episode's first observation, or {"error": why}) adds that pose beside each rule.
+pub fn render_bound(s: &Skill, bound: &Value) -> String {
     let (k, n) = s.record();
     let mut t = format!(
         "### skill {} v{} ({:?}; {k} of {n} natively judged runs succeeded)\n{}\nFile: skills/{}.json (in your scratch folder)\nObjects: {}\nProcedure:\n",
@@ -112,10 +128,44 @@ pub fn render(s: &Skill) -> String {
             .iter()
             .map(|step| match step {
                 Step::Move { rule } => match rules.get(rule.as_str()) {
-                    Some(r) => format!(
-                        "move {rule} ({:?} to offset [{:.3}, {:.3}, {:.3}] m from the {:?} of {}, yaw {:.2} rad, gripper {:+.1})",
-                        r.actor, r.offset_m[0], r.offset_m[1], r.offset_m[2], r.anchor.feature, r.anchor.object, r.yaw_rad, r.gripper
-                    ),
+                    Some(r) => {
+                        let snake = |v: &dyn std::fmt::Debug| {
+                            let d = format!("{v:?}");
+                            d.chars().enumerate().fold(String::new(), |mut o, (i, c)| {
+                                if c.is_uppercase() && i > 0 {
+                                    o.push('_');
+                                }
+                                o.push(c.to_ascii_lowercase());
+                                o
+                            })
+                        };
+                        let second = r.second_anchor.as_ref().map_or(String::new(), |s2| {
+                            let along: Vec<String> = s2
+                                .along
+                                .iter()
+                                .map(|(a, v)| format!("{} {v:+.3} from {} of {}", snake(a), snake(&s2.feature), s2.object))
+                                .collect();
+                            format!(" but along {}", along.join(", "))
+                        });
+                        let now = match &bound[rule.as_str()] {
+                            Value::Array(_) => format!(" → now {}", pose_text(&bound[rule.as_str()])),
+                            Value::Object(e) => {
+                                format!(" → not bound now: {}", e.get("error").and_then(Value::as_str).unwrap_or("?"))
+                            }
+                            _ => String::new(),
+                        };
+                        format!(
+                            "move {rule} ({} [{:.3}, {:.3}, {:.3}] m, yaw {:.2} rad in the {} frame of {}{second}, gripper {:+.1}{now})",
+                            snake(&r.actor),
+                            r.offset_m[0],
+                            r.offset_m[1],
+                            r.offset_m[2],
+                            r.yaw_rad,
+                            snake(&r.anchor.feature),
+                            r.anchor.object,
+                            r.gripper
+                        )
+                    }
                     None => format!("move {rule}"),
                 },
                 Step::Gripper { gripper, settle_s } => format!("gripper {gripper:?} ({settle_s} s)"),
@@ -126,11 +176,20 @@ pub fn render(s: &Skill) -> String {
             .checks
             .iter()
             .map(|c| {
-                format!("{:?}", c.kind).to_lowercase() + &c.object.as_ref().map(|o| format!(" {o}")).unwrap_or_default()
+                format!("{:?}", c.kind).to_lowercase()
+                    + &c.object.as_ref().map(|o| format!(" {o}")).unwrap_or_default()
+                    + &c.support.as_ref().map(|o| format!(" on {o}")).unwrap_or_default()
             })
             .collect();
+        let what = st
+            .description
+            .as_deref()
+            .map(|d| {
+                format!(" ({})", crate::extract::whole_sentences(d, STAGE_TEXT_CHARS).0.trim_end_matches([';', ',']))
+            })
+            .unwrap_or_default();
         t.push_str(&format!(
-            "{}. {}: {}{}\n",
+            "{}. {}{what}: {}{}\n",
             i + 1,
             st.name,
             steps.join("; "),
@@ -143,8 +202,17 @@ pub fn render(s: &Skill) -> String {
     t
 }
 
+/// How much of a stage's description the prompt shows (whole sentences), characters.
+const STAGE_TEXT_CHARS: usize = 200;
+
 pub const HOW_TO_USE: &str = "These skills were learned in earlier episodes. Their motions are relative to objects \
-(robot-skill/skills/README.md): bind them to what you see now, never copy numbers as positions. Run a whole skill: \
+(robot-skill/skills/README.md): every offset and yaw of a rule is in its anchor's frame, NOT the robot's base frame — \
+origin at the named feature of the object as seen when the stage begins, z up (the support surface's normal), x along \
+the object's long side (for a round object, or a side that looks the same turned, the direction facing the TCP when the \
+stage begins; for in_hand, the TCP's own frame when the stage begins, laid level), y = z × x; yaw is the hand's turn \
+about that z from that x (3.14 means facing back along the object's x, not a base-frame angle). \"→ now [...]\" gives the base-frame TCP pose [x, y, z, ax, ay, az] a rule binds to in the first \
+observation of this episode, with the TCP where it is now as the reference: a later stage's rules bind to where their \
+objects are when that stage begins, so bind them again then rather than copying these numbers. Run a whole skill: \
 `import json, robo_skills; robo_skills.run_skill(json.load(open(\"skills/<id>.json\")))` (one JSON line per event, \
 then `SKILL RESULT {...}`); or one rule: `r = robo_skills.SkillRunner(skill); scene, state = r.observe(); \
 pose = r.target(\"<rule id>\", scene, state)`. Verify effects yourself as always.";
@@ -186,6 +254,20 @@ pub fn select(
     backend: Backend,
     o: &SelectOpts,
 ) -> Selection {
+    select_bound(lib, instruction, classes, fp, backend, o, &Value::Null)
+}
+
+/// Steps 1-3, each skill's rules shown with the poses they bind to now (`bound`: skill id →
+/// rule id → pose or {"error": why}, from `skill_tools.py offer`), counted in its tokens.
+pub fn select_bound(
+    lib: &Library,
+    instruction: &str,
+    classes: &[String],
+    fp: &Fingerprint,
+    backend: Backend,
+    o: &SelectOpts,
+    bound: &Value,
+) -> Selection {
     let mut excluded = Vec::new();
     let mut pool: Vec<&Skill> = Vec::new();
     for s in lib.latest() {
@@ -225,7 +307,7 @@ pub fn select(
             } else {
                 wilson_lower(k, n).max(0.01)
             };
-            let text = render(s);
+            let text = render_bound(s, &bound[s.id.as_str()]);
             (
                 Scored {
                     id: s.id.clone(),
@@ -257,7 +339,7 @@ pub fn select(
         }
         used += sc.tokens;
         chosen.push(sc.id.clone());
-        prompt.push_str(&render(s));
+        prompt.push_str(&render_bound(s, &bound[s.id.as_str()]));
         prompt.push('\n');
     }
     if !chosen.is_empty() {
@@ -285,7 +367,12 @@ pub struct LibrarySource {
 impl SkillSource for LibrarySource {
     fn choose(&self, task: &str, first_obs: &Path, state: &Value) -> anyhow::Result<ChosenSkills> {
         let lib = Library::open(&self.dir)?;
-        let seen = crate::tools::call(&self.root, "perceive", &json!({"obs": first_obs}))?;
+        // Perceive once, and bind every rule of the skills that could be chosen to what is seen.
+        let candidates: Vec<&Skill> = lib
+            .latest()
+            .filter(|s| s.status != Status::Retired && s.applicability.fingerprint == self.fingerprint)
+            .collect();
+        let seen = crate::tools::call(&self.root, "offer", &json!({"obs": first_obs, "skills": candidates}))?;
         let mut classes: Vec<String> = seen["objects"]
             .as_array()
             .map(Vec::as_slice)
@@ -296,7 +383,7 @@ impl SkillSource for LibrarySource {
         classes.sort();
         classes.dedup();
         let backend = if state["backend"] == "simulation" { Backend::Sim } else { Backend::Real };
-        let sel = select(&lib, task, &classes, &self.fingerprint, backend, &self.opts);
+        let sel = select_bound(&lib, task, &classes, &self.fingerprint, backend, &self.opts, &seen["bound"]);
         lib.log("selected", json!({"instruction": task, "chosen": sel.chosen, "ranked": sel.ranked}))?;
         let files = sel
             .chosen

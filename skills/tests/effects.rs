@@ -17,7 +17,9 @@ fn scene() -> Scene {
 }
 
 /// (t, block pose [x, y, z, qw, qx, qy, qz], finger opening, contacts)
-fn trace(samples: &[(f64, [f64; 7], f64, &[[u16; 2]])]) -> Trace {
+type Synthetic<'a> = (f64, [f64; 7], f64, &'a [[u16; 2]]);
+
+fn trace(samples: &[Synthetic]) -> Trace {
     Trace {
         gym: "pick_block_plate".into(),
         owners: ["block", "plate", "table", "robot", "floor"].map(String::from).to_vec(),
@@ -68,7 +70,7 @@ fn a_free_fall_a_topple_a_grasp_a_placement_and_an_empty_grasp_are_told_apart() 
     assert!(e.fell.is_empty(), "{e:?}");
     assert_eq!(e.rests_on, vec![("block".to_string(), "plate".to_string())]);
     // Knocked over: lying on its side on the table.
-    let side = [0.7071, 0.7071, 0.0, 0.0];
+    let side = [std::f64::consts::FRAC_1_SQRT_2, std::f64::consts::FRAC_1_SQRT_2, 0.0, 0.0];
     let toppled = trace(&[
         (0.0, at(0.5, 0.0, 0.02, UP), 0.04, &[[BLOCK, TABLE]]),
         (0.2, at(0.52, 0.0, 0.02, side), 0.04, &[[BLOCK, TABLE]]),

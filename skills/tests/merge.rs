@@ -3,6 +3,9 @@
 //! with tests/golden/ (R2G_BLESS=1 rewrites them). Re-applying changes nothing; evidence is
 //! never lost from one version to the next; bad operations are dropped with the reason.
 
+// The rules below carry 3.14159 as written in the golden files they are compared with.
+#![allow(clippy::approx_constant)]
+
 use std::path::{Path, PathBuf};
 
 use serde_json::{json, Value};
@@ -22,6 +25,7 @@ fn round(n: u32) -> Round {
         state_before: json!({"timestamp": n as f64, "backend": "simulation"}),
         state_after: json!({"timestamp": n as f64 + 1.0, "backend": "simulation"}),
         obs_before: None,
+        obs_after: None,
         calls: Vec::new(),
         feedback: String::new(),
     }
@@ -48,16 +52,11 @@ fn draft(n: u32, role: &str, steps: Value, rules: Vec<Value>, checks: Vec<Value>
 /// (negative), 4 the corrected lift (positive), 5 place (positive).
 fn findings(name: &str) -> Findings {
     let labels = vec![
-        Label { round: 1, outcome: Outcome::Unknown, reasons: vec!["sent no motion".into()], effects: None },
-        Label { round: 2, outcome: Outcome::Positive, reasons: vec![], effects: None },
-        Label {
-            round: 3,
-            outcome: Outcome::Negative,
-            reasons: vec!["a chunk was rejected: waypoint 3 too far".into()],
-            effects: None,
-        },
-        Label { round: 4, outcome: Outcome::Positive, reasons: vec![], effects: None },
-        Label { round: 5, outcome: Outcome::Positive, reasons: vec![], effects: None },
+        Label::new(1, Outcome::Unknown, vec!["sent no motion".into()], None),
+        Label::new(2, Outcome::Positive, vec![], None),
+        Label::new(3, Outcome::Negative, vec!["a chunk was rejected: waypoint 3 too far".into()], None),
+        Label::new(4, Outcome::Positive, vec![], None),
+        Label::new(5, Outcome::Positive, vec![], None),
     ];
     let mut drafts = std::collections::BTreeMap::new();
     drafts.insert(
@@ -104,7 +103,7 @@ fn findings(name: &str) -> Findings {
         success: Some(true),
         rounds: (1..=5).map(round).collect(),
     };
-    Findings { record, labels, pairs: vec![(3, 4)], drafts, skipped: Vec::new() }
+    Findings { record, labels, pairs: vec![(3, 4)], drafts, skipped: Vec::new(), roles: Default::default() }
 }
 
 fn ctx() -> Context {

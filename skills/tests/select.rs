@@ -58,9 +58,11 @@ fn skill(id: &str, kind: &str, summary: &str, keywords: &[&str], classes: &[&str
             approach: Approach { axis: None, distance_m: 0.0, step_m: 0.01 },
             gripper: -1.0,
             stop: Stop { kind: StopKind::Reached, force_n: None },
+            second_anchor: None,
         }],
         procedure: vec![Stage {
             name: "approach".into(),
+            description: None,
             steps: vec![Step::Move { rule: "approach_1".into() }],
             checks: vec![],
             retries: 1,
@@ -237,4 +239,26 @@ fn filters_budget_and_determinism() {
     let again = select(&lib, task, &classes, &fp("a"), Backend::Sim, &SelectOpts::default());
     assert_eq!(serde_json::to_string(&sel).expect("json"), serde_json::to_string(&again).expect("json"));
     let _ = std::fs::remove_dir_all(&lib.dir);
+}
+
+#[test]
+fn a_rule_is_shown_in_its_anchor_frame_and_bound_to_the_scene_seen_now() {
+    // A real model given a validated skill read anchor-relative yaws (3.14, 1.57) as base-frame
+    // angles: the section says which frame each number is in, and gives the bound pose.
+    let mut s = skill("stack-bowl", "stack", "Nest one bowl in another.", &["bowl"], &["bowl"], (5, 5));
+    s.rules[0].yaw_rad = 3.0;
+    s.procedure[0].description = Some("approach: above the bowl's wall. Then lower the hand.".into());
+    let bound = serde_json::json!({"approach_1": [0.5, -0.1, 0.2, 3.0, 0.0, 0.0]});
+    let t = skills::select::render_bound(&s, &bound);
+    assert!(
+        t.contains("move approach_1 (tcp [0.000, 0.000, 0.100] m, yaw 3.00 rad in the top_face frame of the_bowl"),
+        "{t}"
+    );
+    assert!(t.contains("→ now [0.500, -0.100, 0.200, 3.000, 0.000, 0.000]"), "{t}");
+    assert!(t.contains("1. approach (approach: above the bowl's wall. Then lower the hand.)"), "{t}");
+    let failed = serde_json::json!({"approach_1": {"error": "no object matches 'red bowl'"}});
+    assert!(skills::select::render_bound(&s, &failed).contains("→ not bound now: no object matches"));
+    assert!(skills::select::HOW_TO_USE.contains("NOT the robot's base frame"));
+    // Without bound poses (tests, libraries listed offline) the rule reads the same, unbound.
+    assert!(!skills::select::render(&s).contains("→"));
 }

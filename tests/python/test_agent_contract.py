@@ -68,11 +68,22 @@ def check_feedback_is_true(run: Path) -> None:
 
 
 @pytest.mark.parametrize("gym", sorted(REAL_RUNS))
-def test_a_real_models_run_replays_with_honest_feedback(gym: str, tmp_path: Path) -> None:
+def test_a_real_models_run_replays_with_honest_feedback_and_its_answer_yields_a_skill(gym: str, tmp_path: Path) -> None:
     seed, perturb = REAL_RUNS[gym]
     run = tmp_path / "run"
-    r = run_episode(gym, f"scripted:{REAL / gym / 'episode.cassette.jsonl'}", run, "--seed", seed, "--perturb", perturb)
+    r = run_episode(gym, f"scripted:{REAL / gym / 'episode.cassette.jsonl'}", run, "--seed", seed, "--perturb", perturb,
+                    "--learn", "--learn-llm", f"scripted:{REAL / gym / 'extraction.cassette.jsonl'}",
+                    "--library", str(tmp_path / "library"), "--admit-runs", "0")
     assert r["success"] is True, r["stop_reason"][:500]
+    # The model's own extraction answer, on today's record of its own programs: written, not dropped.
+    ex = json.loads((run / "extraction.json").read_text())
+    assert ex["answer_dropped"] is None and ex["merge"]["dropped"] == [], ex["merge"]
+    written = [w for w in ex["merge"]["written"] if w[0] == "add"]
+    assert written, ex["merge"]
+    skill = json.loads((tmp_path / "library" / written[0][1] / "v0001.json").read_text())
+    assert len(skill["procedure"]) >= 4 and skill["rules"], skill["procedure"]
+    assert all(len(r["id"]) <= 64 for r in skill["rules"])
+    assert all(st.get("description") for st in skill["procedure"])  # the model's stage texts, whole
     assert r["violations"] == 0, [x["exec"]["violation"] for x in rounds(run) if x.get("exec")]
     check_feedback_is_true(run)
     # The first message gives the run's facts before the model needs them.

@@ -9,6 +9,7 @@ import json
 import math
 import subprocess
 import sys
+import tarfile
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +74,92 @@ def test_relate_then_bind_gives_the_target_back() -> None:
             dp, dr = rs.same_grasp(rs.bind(rule, a, ref), target)
             worst = max(worst, dp + dr)
     assert worst < 1e-5, worst
+
+
+def test_a_second_anchor_binds_with_both_objects_and_relate_gives_it_back() -> None:
+    """Property: a rule with a second anchor ("past the line, level with the block") moves with
+    the whole scene under rigid transforms; moving only the second object moves the target
+    along the named axes by exactly that object's displacement along them; relate then bind
+    gives the target back."""
+    rng = np.random.default_rng(31)
+    worst_rigid = worst_along = worst_back = 0.0
+    for trial in range(300):
+        line = random_anchor(rng, "box")
+        line.extents = np.array([0.3, 0.01, 0.001])
+        line.symmetry = "line"
+        block = random_anchor(rng, ("box", "square", "round")[trial % 3])
+        ref = pose_to_matrix([rng.uniform(0.2, 0.6), rng.uniform(-0.3, 0.3), rng.uniform(0.1, 0.5), math.pi, 0.0,
+                              rng.uniform(-1.0, 1.0)])
+        axes = [("x",), ("y",), ("x", "y"), ("z",)][trial % 4]
+        rule = {"actor": ("tcp", "fingertips")[trial % 2], "anchor": {"object": "line", "feature": "centre"},
+                "offset_m": list(rng.uniform(-0.1, 0.1, 3)), "yaw_rad": rng.uniform(-math.pi, math.pi),
+                "tilt_rad": [math.pi, 0.0, 0.0],
+                "second_anchor": {"object": "block", "feature": "centre",
+                                  "along": {a: float(rng.uniform(-0.05, 0.05)) for a in axes}}}
+        T = np.eye(4)
+        T[:3, :3] = random_rotation(rng)
+        T[:3, 3] = rng.normal(size=3)
+        here = rs.bind(rule, line, ref, second=block)
+        moved = rs.bind(rule, line.transformed(T), T @ ref, second=block.transformed(T))
+        worst_rigid = max(worst_rigid, float(np.abs(moved - T @ here).max()))
+        # The block alone moves by d: along the named axes of the line's frame, so does the target.
+        d = rng.uniform(-0.05, 0.05, 3)
+        shift = np.eye(4)
+        shift[:3, 3] = d
+        F = rs.frame(line, "centre", ref)
+        shifted = rs.bind(rule, line, ref, second=block.transformed(shift))
+        delta = F[:3, :3].T @ (shifted[:3, 3] - here[:3, 3])
+        want = np.zeros(3)
+        for a in axes:
+            i = "xyz".index(a)
+            want[i] = float(F[:3, i] @ d)
+        worst_along = max(worst_along, float(np.abs(delta - want).max()))
+        back = rs.relate(here, line, "centre", ref, actor=rule["actor"], second=block, along=axes)
+        again = dict(rule, **{k: back[k] for k in ("offset_m", "yaw_rad", "tilt_rad")})
+        again["second_anchor"] = dict(rule["second_anchor"], **back["second_anchor"])
+        dp, dr = rs.same_grasp(rs.bind(again, line, ref, second=block), here)
+        worst_back = max(worst_back, dp + dr)
+    assert worst_rigid < 1e-9 and worst_along < 1e-9 and worst_back < 1e-6, (worst_rigid, worst_along, worst_back)
+    with pytest.raises(rs.AnchorError, match="second anchor"):
+        rs.bind(rule, line, ref)
+
+
+def test_a_line_is_faced_across_whichever_way_perception_laid_its_axis() -> None:
+    """A tape line or a bar handle faced from the side: "toward the TCP" along its length would
+    be a coin toss decided by the sign perception gave its long axis; the frame makes its y
+    point toward the TCP instead, for either sign."""
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        a = random_anchor(rng, "box")
+        a.extents = np.array([0.3, 0.01, 0.001])
+        a.symmetry = "line"
+        flipped = rs.Anchor(a.center, a.axes @ np.diag([-1.0, -1.0, 1.0]), a.extents, a.normal, "line")
+        side = a.axes[:, 1] * rng.choice([-1.0, 1.0])
+        along = a.axes[:, 0] * rng.uniform(-0.3, 0.3)  # within 70 degrees of straight across
+        tcp = a.center + 0.3 * side + 0.3 * along * np.tan(math.radians(60)) / 0.3
+        ref = pose_to_matrix([*tcp[:2], 0.3, math.pi, 0.0, 0.0])
+        F, G = rs.frame(a, "centre", ref), rs.frame(flipped, "centre", ref)
+        assert np.allclose(F, G, atol=1e-12)
+        assert float(F[:3, 1] @ (tcp - a.center)) > 0.0, "y points toward the TCP"
+
+
+def test_an_in_hand_rule_is_relative_to_the_hand_that_holds_the_part() -> None:
+    """A drawer's handle pulled: perception of a part seen through the fingers is too rough to
+    pull by, so the rule is bound to the TCP's own frame when the stage began, laid level, and
+    the runner checks that the gripper holds something."""
+    rule = {"id": "pull_1", "actor": "tcp", "anchor": {"object": "grey_bar", "feature": "in_hand"},
+            "offset_m": [0.0, -0.02, 0.0], "yaw_rad": 0.0, "tilt_rad": [math.pi, 0.0, 0.0]}
+    runner = rs.SkillRunner({"objects": {"grey_bar": {"prompt": "grey bar", "class": "bar"}}, "rules": [rule]},
+                            log=lambda e: None)
+    scene = fake_scene(("blue", "plate", (0.5, 0.3)))  # the handle need not be found
+    here = [0.54, 0.0, 0.19, 2.2214, -2.2214, 0.0]      # the hand yawed -90 degrees, fingers down
+    pose = runner.target("pull_1", scene, {"ee_pose": here, "gripper": [0.62]})
+    # The level frame: x the TCP's x (here base -y), y = up × x (base +x); -2 cm along it.
+    y_level = np.cross([0.0, 0.0, 1.0], pose_to_matrix(here)[:3, 0])
+    assert pose[:3] == pytest.approx(list(np.asarray(here[:3]) - 0.02 * y_level), abs=1e-9)
+    assert pose[:3] == pytest.approx([0.52, 0.0, 0.19], abs=1e-9)
+    with pytest.raises(rs.AnchorError, match="should be in the hand"):
+        runner.target("pull_1", scene, {"ee_pose": here, "gripper": [-1.0]})
 
 
 @pytest.mark.parametrize("code", [
@@ -259,6 +346,63 @@ def test_an_episode_given_skills_logs_its_selection_and_the_viewer_shows_it(lear
     assert sel["chosen"] == ["pick-place-on-plate"], sel
     assert "box" in sel["perceived_classes"]
     assert (out_dir / "scratch" / "skills" / "pick-place-on-plate.json").is_file()
-    assert "### skill pick-place-on-plate" in (out_dir / "system_prompt.md").read_text()
+    prompt = (out_dir / "system_prompt.md").read_text()
+    assert "### skill pick-place-on-plate" in prompt
+    # Each rule in its anchor's frame, said to be so, and bound to what the episode sees first.
+    assert "NOT the robot's base frame" in prompt and "→ now [" in prompt, prompt[-3000:]
     dom = chromium_dom(out_dir / "index.html")
     assert "Skills selected: pick-place-on-plate" in dom, dom[-3000:]
+
+
+# ---- a real model's answer ----
+
+REAL = ROOT / "tests" / "data" / "real-model" / "open_drawer"
+
+
+def test_a_real_model_s_extraction_answer_yields_a_skill(tmp_path: Path) -> None:
+    """The open_drawer run in which a real model chose every decision and wrote the extraction
+    answer (tests/data/real-model/, NOT synthetic). `record.tar.xz` (1.4 MB) holds what
+    extraction reads of that run folder: config, transcript, calls, native traces and the
+    observations from the episode's last reset() on (the warm-up's are not read); the answer is
+    the model's own, served turn by turn. Before issue 31 this answer was dropped whole (a rule
+    id over 64 characters); now every round is labelled from what physics measured, the warm-up
+    before reset() is kept out, the handle keeps one name, and the answer becomes one skill whose
+    stages keep the model's words."""
+    with tarfile.open(REAL / "record.tar.xz") as t:
+        t.extractall(tmp_path, filter="data")
+    run = tmp_path / "run"
+    for name in ("config.json", "result.json"):
+        p = run / name
+        p.write_text(p.read_text().replace("<CHECKOUT>", str(ROOT)).replace("<RUN>", str(run)))
+    lib = tmp_path / "library"
+    rc, out, err = r2g("skills", "extract", str(run), "--llm", f"scripted:{REAL / 'extraction.cassette.jsonl'}",
+                       "--library", str(lib), "--admit-runs", "0")
+    assert rc == 0, err[-3000:]
+    x = last_json(out)
+    assert x["written"] == [["add", "open-drawer-bar-handle-topgrasp-pull", 1]] and x["dropped"] == 0, x
+    report = json.loads((run / "extraction.json").read_text())
+    labels = {lab["round"]: lab for lab in report["labels"]}
+    assert labels[1]["exploration"] and labels[2]["exploration"], "observation and warm-up came before reset()"
+    assert [labels[n]["outcome"] for n in range(3, 8)] == ["positive"] * 5
+    assert not any(labels[n]["exploration"] for n in range(3, 9))
+    pulled = labels[5]["effects"]["joints"]
+    assert pulled and pulled[0]["fixture"] == "cabinet" and pulled[0]["to"] - pulled[0]["from"] > 0.15, pulled
+    assert "cabinet" in labels[4]["effects"]["touched"]
+    assert report["pairs"] == [] and report["skipped"] == [], (report["pairs"], report["skipped"])
+    assert report["merge"]["dropped"] == []
+    prompt = report["exchange"]["prompt"]
+    assert "E2: Positive (exploration" in prompt and "cabinet's slide went from" in prompt
+    for line in prompt.splitlines():
+        if "[plan cut here]" in line:
+            before = line[: line.index(" [plan cut here]")]
+            assert before.endswith((".", "!", "?", ";")), line[-200:]
+    skill = json.loads((lib / "open-drawer-bar-handle-topgrasp-pull" / "v0001.json").read_text())
+    assert [st["name"] for st in skill["procedure"]] == ["approach", "grasp", "pull", "release", "verify"]
+    assert skill["procedure"][2]["description"].startswith("pull: straight out along the drawer axis")
+    # One name for the handle in every stage; the pull is relative to the hand that holds it.
+    assert set(skill["objects"]) == {"grey_bar"}, skill["objects"]
+    assert all(r["anchor"]["object"] == "grey_bar" for r in skill["rules"])
+    assert {r["anchor"]["feature"] for r in skill["rules"] if r["id"].startswith("pull_")} == {"in_hand"}
+    assert all(len(r["id"]) <= 64 for r in skill["rules"])
+    assert sorted(e["round"] for e in skill["evidence"]) == [3, 4, 5, 6, 7]
+    assert {"kind": "moved", "object": "grey_bar"}.items() <= skill["procedure"][2]["checks"][0].items()

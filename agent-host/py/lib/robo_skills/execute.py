@@ -106,6 +106,15 @@ class SkillRunner:
     def anchor(self, role: str, scene) -> Anchor:
         return Anchor.from_cluster(self.find(role, scene), scene.plane.normal, role)
 
+    def in_hand(self, role: str, scene, state: dict) -> Anchor:
+        """The anchor of an ``in_hand`` rule: the object is not looked for (seen through the
+        fingers it is too rough to pull by); the gripper must hold something."""
+        g = float(state["gripper"][0])
+        if not -0.95 < g < 0.95:
+            raise AnchorError(f"object role {role!r} should be in the hand (an in_hand rule) but the gripper reads "
+                              f"{g:+.2f}: open or closed on nothing")
+        return Anchor(np.zeros(3), np.eye(3), np.full(3, 0.01), np.asarray(scene.plane.normal, dtype=float), "box", role)
+
     def target(self, rule_id: str, scene, state: dict, reference=None) -> list[float]:
         """The TCP pose rule ``rule_id`` asks for in this scene (reference: the TCP pose the stage
         began with; default the measured one)."""
@@ -113,7 +122,11 @@ class SkillRunner:
         if rule_id in self.absolute:
             return [float(v) for v in self.absolute[rule_id]]
         ref = state["ee_pose"] if reference is None else reference
-        T = bind(rule, self.anchor(rule["anchor"]["object"], scene), ref)
+        spec = rule.get("second_anchor")
+        second = self.anchor(spec["object"], scene) if spec else None
+        role = rule["anchor"]["object"]
+        first = self.in_hand(role, scene, state) if rule["anchor"].get("feature") == "in_hand" else self.anchor(role, scene)
+        T = bind(rule, first, ref, second=second)
         return matrix_to_pose(T)
 
     # ---- motion ----
