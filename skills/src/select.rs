@@ -185,7 +185,9 @@ pub fn render_bound(s: &Skill, bound: &Value) -> String {
             .description
             .as_deref()
             .map(|d| {
-                format!(" ({})", crate::extract::whole_sentences(d, STAGE_TEXT_CHARS).0.trim_end_matches([';', ',']))
+                // A cut text says so: the skill file holds it whole.
+                let (text, cut) = crate::extract::whole_sentences(d, STAGE_TEXT_CHARS);
+                format!(" ({}{})", text.trim_end_matches([';', ',']), if cut { " …" } else { "" })
             })
             .unwrap_or_default();
         t.push_str(&format!(
@@ -212,7 +214,8 @@ the object's long side (for a round object, or a side that looks the same turned
 stage begins; for in_hand, the TCP's own frame when the stage begins, laid level), y = z × x; yaw is the hand's turn \
 about that z from that x (3.14 means facing back along the object's x, not a base-frame angle). \"→ now [...]\" gives the base-frame TCP pose [x, y, z, ax, ay, az] a rule binds to in the first \
 observation of this episode, with the TCP where it is now as the reference: a later stage's rules bind to where their \
-objects are when that stage begins, so bind them again then rather than copying these numbers. Run a whole skill: \
+objects are when that stage begins, so bind them again then rather than copying these numbers. A stage's text that \
+ends in \"…\" continues in the skill's file (its `description`). Run a whole skill: \
 `import json, robo_skills; robo_skills.run_skill(json.load(open(\"skills/<id>.json\")))` (one JSON line per event, \
 then `SKILL RESULT {...}`); or one rule: `r = robo_skills.SkillRunner(skill); scene, state = r.observe(); \
 pose = r.target(\"<rule id>\", scene, state)`. Verify effects yourself as always.";
