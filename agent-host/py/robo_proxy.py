@@ -48,6 +48,7 @@ class Session:
         self.steps = 0
         self.calls = 0
         self.refused = 0
+        self.observe_refused = 0
         self.override: dict | None = None
         # The program's own robot calls, for the host's feedback: chunks by outcome, resets, and
         # the last reset/post_actions (status and reason as the program's control_feedback had them).
@@ -90,8 +91,13 @@ class Session:
             )
         return {"image": s["image"][camera], "depth": s["depth"][camera], "intrinsics": s["camera_intrinsics"][camera]}
 
-    def refuse(self, fn: str, reason: str) -> int:
-        self.refused += 1
+    def refuse(self, fn: str, reason: str, budget: bool = True) -> int:
+        """Answers a reset/post_actions with 0 without sending it: the control-step budget is
+        spent (`budget`), or the turn is observation-only."""
+        if budget:
+            self.refused += 1
+        else:
+            self.observe_refused += 1
         fb = robo.get_state([])["control_feedback"]
         fb.update(status="rejected", reason=reason, executed=0, request_id=0, submit_to_accept_us=None, submit_to_first_motion_us=None)
         self.override = fb
@@ -136,7 +142,8 @@ class Session:
                 raise TypeError("perception(op, payload)")
             return services().serve_proxy(args[0], args[1], self.camera_frame)
         if self.observe_only:
-            return self.refuse(fn, "this turn is observation-only: reset() and post_actions() are not allowed yet")
+            return self.refuse(fn, "this turn is observation-only: reset() and post_actions() are not allowed yet",
+                               budget=False)
         if fn == "reset":
             self.override = None
             self.frames.clear()  # simulated time starts again: old timestamps would match anew
@@ -250,7 +257,7 @@ def main() -> int:
                 if cmd.get("cmd") == "begin":
                     sess.budget = int(cmd.get("budget", 600))
                     sess.observe_only = bool(cmd.get("observe_only", False))
-                    sess.steps = sess.calls = sess.refused = 0
+                    sess.steps = sess.calls = sess.refused = sess.observe_refused = 0
                     sess.chunks = dict.fromkeys(sess.chunks, 0)
                     sess.resets = dict.fromkeys(sess.resets, 0)
                     sess.last = None
@@ -258,6 +265,7 @@ def main() -> int:
                     print(json.dumps({"ok": True}), flush=True)
                 elif cmd.get("cmd") == "end":
                     print(json.dumps(_strict({"steps": sess.steps, "calls": sess.calls, "refused": sess.refused,
+                                              "observe_refused": sess.observe_refused,
                                               "chunks": sess.chunks, "resets": sess.resets, "last": sess.last,
                                               "log": sess.calls_log})), flush=True)
                 elif cmd.get("cmd") == "observe":

@@ -86,7 +86,8 @@ def run(code: str, name: str) -> dict:
 
 
 # What a stage program may import (the answer format says the same, agent-host/src/prompt.rs):
-# these, the standard library, and modules the program itself saved in its scratch folder.
+# these, the standard library, modules the program itself saved in its scratch folder, and the
+# example programs of robot-skill/examples.
 SUPPORTED = ("robo", "robo_perception", "robo_skills", "robo_services", "robo_memory", "numpy")
 
 
@@ -98,14 +99,16 @@ class OnlySupported(importlib.abc.MetaPathFinder):
         import sysconfig
 
         self.scratch = os.path.realpath(scratch) + os.sep
+        # The documents' example programs (robot-skill/examples, read-only) may be imported too.
+        self.examples = os.path.realpath(os.path.join(scratch, "robot-skill", "examples")) + os.sep
         # The standard library's own folders (private modules such as _sysconfigdata_* are not
         # in sys.stdlib_module_names), never a site-packages folder.
         self.stdlib = tuple({os.path.realpath(sysconfig.get_paths()[k]) + os.sep for k in ("stdlib", "platstdlib")})
 
     def allowed(self, origin: str) -> bool:
         real = os.path.realpath(origin)
-        if real.startswith(self.scratch):
-            return True  # the program's own module, saved in the scratch folder
+        if real.startswith((self.scratch, self.examples)):
+            return True  # the program's own module, saved in the scratch folder, or an example
         return real.startswith(self.stdlib) and "-packages" + os.sep not in real
 
     def find_spec(self, name: str, path: object = None, target: object = None) -> None:
@@ -117,7 +120,8 @@ class OnlySupported(importlib.abc.MetaPathFinder):
             return None
         raise ModuleNotFoundError(
             f"No module named {name!r} for stage programs: they may import "
-            f"{', '.join(SUPPORTED)}, the Python standard library and their own modules in the scratch folder",
+            f"{', '.join(SUPPORTED)}, the Python standard library, their own modules in the scratch folder "
+            f"and the examples in robot-skill/examples",
             name=name,
         )
 

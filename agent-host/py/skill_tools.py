@@ -386,13 +386,20 @@ def relate_record(req: dict) -> dict:
     tracker = rp.Tracker()
     ident = Identities()
     scenes: dict[str, tuple] = {}
+    unreadable: dict[str, str] = {}
 
     def seen(path: Optional[str], native: Optional[dict]):
-        if not path:
+        """An observation, segmented with the record's tracker; an observation that cannot be read
+        or segmented costs only the rounds that need it (named in `unreadable`)."""
+        if not path or path in unreadable:
             return None
         if path not in scenes:
-            state = load_obs(path)
-            scene = rp.segment_scene(state, tracker=tracker)
+            try:
+                state = load_obs(path)
+                scene = rp.segment_scene(state, tracker=tracker)
+            except Exception as e:  # noqa: BLE001 - a broken file is one round's problem
+                unreadable[path] = f"{type(e).__name__}: {e}"
+                return None
             ident.observe(scene, {k: np.asarray(v, dtype=float) for k, v in (native or {}).items()})
             scenes[path] = (scene, state)
         return scenes[path]
@@ -407,14 +414,16 @@ def relate_record(req: dict) -> dict:
             continue
         key = str(r["round"])
         if not r.get("obs") or r["obs"] not in scenes:
-            out[key] = {"error": "the record has no observation from the round's start"}
+            why = unreadable.get(r.get("obs") or "")
+            out[key] = {"error": f"the observation from the round's start could not be read: {why}" if why
+                        else "the record has no observation from the round's start"}
             continue
         scene, state = scenes[r["obs"]]
         pushed_roles = [ident.role_of_native[n] for n in r.get("pushed") or [] if n in ident.role_of_native]
         try:
             g = relate_scene(scene, state, r.get("calls") or [], ident,
                              {"pushed": pushed_roles, "gripper_commanded": r.get("gripper_commanded")})
-        except (ValueError, rs.AnchorError) as e:
+        except Exception as e:  # noqa: BLE001 - one round that cannot be related is skipped alone
             out[key] = {"error": f"{type(e).__name__}: {e}"}
             continue
         # every perceived scene object the trace names (checks may be about one no rule is anchored to)
@@ -488,7 +497,7 @@ def offer(req: dict) -> dict:
                         pose = runner.target(rid, scene, state, reference=ref)
                     poses[rid] = [round(float(v), 4) for v in pose]
                     last = [float(v) for v in pose]
-                except (rs.AnchorError, ValueError, KeyError) as e:
+                except Exception as e:  # noqa: BLE001 - one rule that cannot be bound is that rule's note
                     # the reason, without the list of everything seen (the prompt shows the scene)
                     poses[rid] = {"error": str(e).split("; seen:")[0].split(" Seen:")[0][:160]}
             if last is not None:

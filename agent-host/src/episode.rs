@@ -245,6 +245,28 @@ fn prune_images(messages: &mut [Message], keep: usize, step: usize) {
     }
 }
 
+/// Keeps the images a program showed (those after a message's camera images) in the newest
+/// user message only: the model has seen them once, and they are the largest and most numerous
+/// (bounding every request's size). `cameras_of`: (message index, camera images in it).
+fn prune_shown(messages: &mut [Message], cameras_of: &[(usize, usize)]) {
+    let newest = messages.iter().rposition(|m| m.role == Role::User);
+    for &(i, cameras) in cameras_of {
+        if Some(i) == newest {
+            continue;
+        }
+        let Some(m) = messages.get_mut(i) else { continue };
+        let mut seen = 0;
+        for p in m.parts.iter_mut() {
+            if matches!(p, Part::Png(_)) {
+                seen += 1;
+                if seen > cameras {
+                    *p = Part::Text("[an image the program showed, no longer shown]".into());
+                }
+            }
+        }
+    }
+}
+
 fn instruction(scene: &Path) -> anyhow::Result<String> {
     let t: toml::Table = toml::from_str(&std::fs::read_to_string(scene)?)?;
     t.get("task")
@@ -259,7 +281,7 @@ fn instruction(scene: &Path) -> anyhow::Result<String> {
 /// in pixels and their largest file size.
 pub const MAX_SHOWN: usize = 4;
 pub const MAX_SHOWN_SIDE: u32 = 1280;
-pub const MAX_SHOWN_BYTES: u64 = 4 << 20;
+pub const MAX_SHOWN_BYTES: u64 = 2 << 20;
 
 /// Takes the images a program left in `<scratch>/show/` (`robo_perception.show`): at most
 /// [`MAX_SHOWN`] PNG files, by name, each decoded and written again as 8-bit PNG (so an endpoint
@@ -355,13 +377,17 @@ fn normalise_png(bytes: &[u8]) -> Result<(Vec<u8>, u32, u32), String> {
         let mut wr = e.write_header().map_err(|e| e.to_string())?;
         wr.write_image_data(&data).map_err(|e| e.to_string())?;
     }
+    if out.len() as u64 > MAX_SHOWN_BYTES {
+        return Err(format!("{} bytes as a PNG, more than {MAX_SHOWN_BYTES}: crop it", out.len()));
+    }
     Ok((out, w, h))
 }
 
 /// The text of the robot configuration file in force (what `robot-skill/config/robot.json`
 /// shows the programs).
 fn robot_config_text(cfg: &EpisodeConfig) -> String {
-    let p = cfg.robot_config.clone().unwrap_or_else(|| cfg.root.join("robot-skill/config/robot.json"));
+    // The same file GymRun starts the instance with when none is given.
+    let p = cfg.robot_config.clone().unwrap_or_else(runtime::launch::default_robot_config);
     std::fs::read_to_string(&p).unwrap_or_else(|e| format!("({} could not be read: {e})", p.display()))
 }
 
@@ -454,11 +480,15 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
     let mut observe_only = true;
     let mut executions = 0u32;
     let mut estimate = crate::tokens::PrefixEstimate::default();
+    // (message index, its camera images): the images after them in a message are the ones its
+    // program showed, kept in the newest message only ([`prune_shown`]).
+    let mut cameras_of: Vec<(usize, usize)> = Vec::new();
     let stop_reason = loop {
         if out.responses >= cfg.max_decisions {
             break format!("decision budget of {} spent", cfg.max_decisions);
         }
         let round = out.responses + 1;
+        prune_shown(&mut messages, &cameras_of);
         prune_images(&mut messages, 6, 3);
         let est = estimate.next(&system, &messages);
         out.tokens_in_estimated += est.input;
@@ -494,6 +524,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         }
         let mut text = String::new();
         let mut attach = Vec::new();
+        let mut camera_count = 0;
         match (&decision.code, &problem) {
             (_, Some(problem)) => {
                 text = format!(
@@ -518,20 +549,34 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
                 let mut shown_files = Vec::new();
                 let camera_images = timed(&mut split.observe_s, || images(&after));
                 let cameras: Vec<String> = camera_images.iter().map(|(n, _)| n.clone()).collect();
+                camera_count = camera_images.len();
                 for (name, png) in camera_images {
                     timed(&mut split.records_s, || rec.file(&format!("{dir}/{name}.png"), &png))?;
                     attach.push(Part::Png(png));
                 }
-                for (k, (s, png)) in shown.iter().enumerate() {
-                    if let (prompt::Shown::Image { name, .. }, Some(png)) = (s, png) {
-                        let file = format!("{dir}/shown/{k}-{}", name.trim_start_matches("show/"));
-                        timed(&mut split.records_s, || rec.file(&file, png))?;
-                        shown_files.push(file);
-                        attach.push(Part::Png(png.clone()));
+                let mut shown_now: Vec<prompt::Shown> = Vec::new();
+                for (s, png) in shown {
+                    let (Some(png), prompt::Shown::Image { name, .. }) = (png, &s) else {
+                        shown_now.push(s);
+                        continue;
+                    };
+                    // Recorded under a name of ours: the program's may be anything a file may be called.
+                    let file = format!("{dir}/shown/{}.png", shown_files.len() + 1);
+                    let recorded: anyhow::Result<String> = timed(&mut split.records_s, || rec.file(&file, &png));
+                    match recorded {
+                        Ok(_) => {
+                            shown_files.push(json!({"file": file, "name": name}));
+                            attach.push(Part::Png(png));
+                            shown_now.push(s);
+                        }
+                        Err(e) => {
+                            let why = format!("could not be recorded ({e})");
+                            shown_now.push(prompt::Shown::Refused { name: name.clone(), why });
+                        }
                     }
                 }
+                let shown = shown_now;
                 let left = cfg.max_decisions.saturating_sub(out.responses);
-                let shown: Vec<prompt::Shown> = shown.into_iter().map(|(s, _)| s).collect();
                 text = prompt::feedback_text(&prompt::Feedback {
                     n: executions,
                     result: &r,
@@ -576,6 +621,7 @@ pub fn run(cfg: &EpisodeConfig, instance: &str) -> anyhow::Result<EpisodeResult>
         })?;
         let mut parts = vec![Part::Text(text)];
         parts.extend(attach);
+        cameras_of.push((messages.len(), camera_count));
         messages.push(Message { role: Role::User, parts });
     };
     drop(worker);

@@ -30,23 +30,29 @@ pub fn seed(scratch: &Path, memory_dir: &Path) -> anyhow::Result<()> {
 /// records only (`<timestamp>-<uuid>.json` or `.md`), not the folder's README or anything else;
 /// a name `dst` holds already is left as it is (records never change).
 pub fn mirror(memory_dir: &Path, dst: &Path) -> anyhow::Result<()> {
-    use std::os::unix::fs::OpenOptionsExt as _;
     let Ok(rd) = std::fs::read_dir(memory_dir) else { return Ok(()) };
     let records = rd
         .flatten()
         .filter(|e| e.file_type().is_ok_and(|t| t.is_file()) && is_record_name(&e.file_name().to_string_lossy()));
     for e in records {
         let Ok(body) = std::fs::read(e.path()) else { continue };
-        let out = std::fs::OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .custom_flags(libc::O_NOFOLLOW)
-            .open(dst.join(e.file_name()));
-        if let Ok(mut out) = out {
-            let _ = out.write_all(&body);
-        }
+        // A record already there (or a name taken by something else) stays as it is.
+        let _ = write_new(&dst.join(e.file_name()), &body);
     }
     Ok(())
+}
+
+/// Writes a new file whole or not at all, never replacing one: the bytes go to a temporary
+/// name beside it, which is then hard-linked to `path` (the link fails if `path` exists, even as
+/// a dangling link) and removed. A reader never sees a half-written record.
+fn write_new(path: &Path, body: &[u8]) -> std::io::Result<()> {
+    use std::os::unix::fs::OpenOptionsExt as _;
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = path.with_file_name(format!(".{name}.{}.partial", std::process::id()));
+    let mut out = std::fs::OpenOptions::new().write(true).create_new(true).custom_flags(libc::O_NOFOLLOW).open(&tmp)?;
+    let written = out.write_all(body).and_then(|_| out.sync_data()).and_then(|_| std::fs::hard_link(&tmp, path));
+    let _ = std::fs::remove_file(&tmp);
+    written
 }
 
 /// A record's file name as robot-skill/memory/README.md gives it: `<UTC timestamp>-<uuid4>`
@@ -91,10 +97,7 @@ pub fn collect(scratch: &Path, memory_dir: &Path, taken: &mut usize) -> Vec<Stri
         if (&mut f).take(MAX_RECORD_BYTES).read_to_end(&mut body).is_err() {
             continue;
         }
-        let written = std::fs::create_dir_all(memory_dir).and_then(|_| {
-            let mut out = std::fs::OpenOptions::new().write(true).create_new(true).open(&dst)?;
-            out.write_all(&body)
-        });
+        let written = std::fs::create_dir_all(memory_dir).and_then(|_| write_new(&dst, &body));
         if written.is_ok() {
             *taken += 1;
             added.push(name);

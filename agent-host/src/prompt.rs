@@ -98,16 +98,18 @@ one complete Python program for this stage
 When the task is done (or cannot be done), reply with <observation>...</observation> and
 <stop>why you stop</stop> instead of code.
 
-The program runs in a fresh Python 3.11 process in a sandbox. Its current folder is a scratch folder
+The program runs in a fresh Python process in a sandbox. Its current folder is a scratch folder
 kept for the whole episode: files it saves there stay for later programs (a module you save there can
 be imported by them). robot-skill/ in that folder is these documents (read-only); memory/ is where
-new memory records go. A program may import {modules}; any other
-import fails with ImportError. No network, no
+new memory records go. A program may import {modules}, its own modules
+and the examples (after sys.path.insert(0, \"robot-skill/examples\")); any other import fails with
+ImportError. No network, no
 subprocesses, no files outside the scratch folder and robot-skill/. The first message gives the
 budgets (control steps and time per program, decisions per episode).
 
 After each program you get: how it ended, its chunks executed / failed / rejected and resets, the
-status and reason of its own last robot call, the simulated time it used, its stdout and stderr, the
+status and reason of its own last robot call, the time it used (simulated time in lockstep mode,
+wall-clock time in wall mode), its stdout and stderr, the
 measured state before and after it, fresh images of every camera, and the images it handed over with
 robo_perception.show() (api/PERCEPTION.md, \"Showing images\").
 ";
@@ -301,10 +303,10 @@ pub fn feedback_text(f: &Feedback) -> String {
         t.push_str(&format!("SANDBOX: {v}\n"));
     }
     if r.budget_refusals > 0 {
-        t.push_str(&format!(
-            "{} robot call(s) were refused before reaching the robot (control-step budget or observation-only turn).\n",
-            r.budget_refusals
-        ));
+        t.push_str(&format!("{} robot call(s) were refused by the control-step budget.\n", r.budget_refusals));
+    }
+    if r.observe_refusals > 0 {
+        t.push_str(&format!("{} robot call(s) were refused: this turn is observation-only.\n", r.observe_refusals));
     }
     for (name, body) in [("stdout", &r.stdout), ("stderr", &r.stderr)] {
         t.push_str(&format!("--- {name} ---\n{}\n", if body.is_empty() { "(empty)" } else { body.trim_end() }));
@@ -321,7 +323,7 @@ pub fn feedback_text(f: &Feedback) -> String {
         .shown
         .iter()
         .filter_map(|s| match s {
-            Shown::Image { name, width, height } => Some(format!("{name} ({width}x{height})")),
+            Shown::Image { name, width, height } => Some(format!("{} ({width}x{height})", name.escape_debug())),
             Shown::Refused { .. } => None,
         })
         .collect();
@@ -353,6 +355,37 @@ pub fn feedback_text(f: &Feedback) -> String {
 mod tests {
     use super::*;
     use serde_json::json;
+
+    fn py(rel: &str) -> String {
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)).expect("a file of the crate")
+    }
+
+    /// The Python sides state the same lists and limits as the texts the model reads.
+    #[test]
+    fn the_modules_and_hand_over_limits_agree_with_the_python_that_enforces_them() {
+        let runner = py("py/runner.py");
+        let line = runner.lines().find(|l| l.starts_with("SUPPORTED = (")).expect("SUPPORTED in runner.py");
+        let mut enforced: Vec<&str> = line.split('"').skip(1).step_by(2).collect();
+        enforced.sort_unstable();
+        let told = MODULES.trim_end_matches(" and the Python standard library");
+        let mut told: Vec<&str> = told.split(", ").collect();
+        told.sort_unstable();
+        assert_eq!(enforced, told);
+        let images = py("py/lib/robo_perception/images.py");
+        for (name, value) in [
+            ("MAX_SHOWN", crate::episode::MAX_SHOWN as u64),
+            ("MAX_SHOWN_SIDE", u64::from(crate::episode::MAX_SHOWN_SIDE)),
+            ("MAX_SHOWN_BYTES", crate::episode::MAX_SHOWN_BYTES),
+        ] {
+            let line = images.lines().find(|l| l.starts_with(&format!("{name} = "))).expect(name);
+            let v = line.split('=').nth(1).unwrap_or_default().trim();
+            let v: u64 = match v.split_once(" << ") {
+                Some((a, b)) => a.parse::<u64>().unwrap_or(0) << b.parse::<u32>().unwrap_or(0),
+                None => v.parse().unwrap_or(0),
+            };
+            assert_eq!(v, value, "{name} in images.py");
+        }
+    }
 
     #[test]
     fn simulated_time_counts_across_a_reset_and_is_never_negative() {

@@ -484,7 +484,7 @@ pub fn exec(file: &Path, o: &ExecOpts) -> anyhow::Result<Value> {
         std::fs::create_dir_all(&scratch).with_context(|| format!("creating {}", scratch.display()))?;
         crate::memory::seed(&scratch, dir)?;
     }
-    let config_shown = cfg.robot_config.clone().unwrap_or_else(|| root.join("robot-skill/config/robot.json"));
+    let config_shown = cfg.robot_config.clone().unwrap_or_else(launch::default_robot_config);
     let mut worker = crate::worker::Worker::new(cfg);
     // The configuration the program is shown should be the one the instance reports.
     let mut warnings = Vec::new();

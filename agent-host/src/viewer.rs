@@ -29,7 +29,9 @@ pub fn write(dir: &Path) -> anyhow::Result<std::path::PathBuf> {
                 .unwrap_or_default();
             imgs.sort();
             // Then the images the program showed the model (`shown`, in the order attached).
-            imgs.extend(r["shown"].as_array().into_iter().flatten().filter_map(|s| s.as_str().map(str::to_string)));
+            imgs.extend(
+                r["shown"].as_array().into_iter().flatten().filter_map(|s| s["file"].as_str().map(str::to_string)),
+            );
             r["images"] = json!(imgs);
             r
         })

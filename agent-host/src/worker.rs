@@ -68,7 +68,7 @@ pub struct WorkerConfig {
     /// The memory folder whose records `robot-skill/memory/` shows (None: only its README).
     pub memory_dir: Option<PathBuf>,
     /// The robot configuration file in force, shown as `robot-skill/config/robot.json` (None:
-    /// the shipped `robot-skill/config/robot.json`).
+    /// the one `r2g up` uses without `--robot-config`, `runtime::launch::default_robot_config`).
     pub robot_config: Option<PathBuf>,
 }
 
@@ -123,6 +123,8 @@ pub struct ExecResult {
     pub control_steps: u64,
     pub robot_calls: u64,
     pub budget_refusals: u64,
+    /// Robot calls refused because the turn is observation-only.
+    pub observe_refusals: u64,
     /// The program's chunks by outcome (`executed`, `failed`, `rejected`: refused by the
     /// runtime, the budget or robo before anything moved) and its resets (`done`, `refused`).
     pub chunks: BTreeMap<String, u64>,
@@ -404,7 +406,7 @@ impl Worker {
         for d in SHARED_DOCS {
             std::os::unix::fs::symlink(docs.join(d), view.join(d))?;
         }
-        let config = self.cfg.robot_config.clone().unwrap_or_else(|| docs.join("config/robot.json"));
+        let config = self.cfg.robot_config.clone().unwrap_or_else(runtime::launch::default_robot_config);
         std::fs::copy(&config, view.join("config/robot.json"))
             .with_context(|| format!("the robot configuration {}", config.display()))?;
         let perception = std::env::var_os("R2G_PERCEPTION_CONFIG")
@@ -709,6 +711,7 @@ impl Worker {
         r.control_steps = n("steps");
         r.robot_calls = n("calls");
         r.budget_refusals = n("refused");
+        r.observe_refusals = n("observe_refused");
         let counts = |k: &str| -> BTreeMap<String, u64> {
             v.get(k).and_then(|c| serde_json::from_value(c.clone()).ok()).unwrap_or_default()
         };

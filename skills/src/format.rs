@@ -9,8 +9,14 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use serde::{Deserialize, Serialize};
 
-/// The format's version: files of another schema are refused, not guessed at.
-pub const SCHEMA: u32 = 1;
+/// The format's version new skills are written in: files of a schema not in [`READS`] are
+/// refused, not guessed at. Schema 2 binds a long thin anchor (a line, a bar: short side under
+/// half the long one) with its y toward the TCP when the TCP faces it across its length (the
+/// "line" frame, robot-skill/skills/README.md); schema 1 files, written before, keep the frame
+/// they were extracted and admitted with (robo_skills reads the schema when it binds).
+pub const SCHEMA: u32 = 2;
+/// The schemas this build reads.
+pub const READS: [u32; 2] = [1, 2];
 /// How far a rule's target may be from its anchor: further is not "about" that object.
 pub const MAX_OFFSET_M: f64 = 0.40;
 
@@ -425,8 +431,8 @@ impl Skill {
 
     /// Everything a skill must satisfy; the first violation is returned.
     pub fn validate(&self) -> Result<(), FormatError> {
-        if self.schema != SCHEMA {
-            return Err(self.err("schema", format!("is {}, this build reads {SCHEMA}", self.schema)));
+        if !READS.contains(&self.schema) {
+            return Err(self.err("schema", format!("is {}, this build reads {READS:?}", self.schema)));
         }
         if !id_ok(&self.id) {
             return Err(self.err("id", "1 to 64 of a-z, 0-9, '_' and '-'"));

@@ -196,6 +196,11 @@ fn normalise(f: &Findings, op: &Value, notes: &mut Vec<String>) -> Result<Op, St
     let mut o = Op { kind: kind.to_string(), ..Default::default() };
     o.id = m.get("id").and_then(text_of);
     o.skill = m.get("skill").and_then(text_of);
+    if o.skill.is_none() && kind != "add" && kind != "split" && o.id.is_some() {
+        // The skill an operation is about, named under "id" instead of "skill".
+        notes.push("the skill is named under \"id\": read as \"skill\"".into());
+        o.skill = o.id.clone();
+    }
     o.name = m.get("name").and_then(text_of);
     o.summary = m.get("summary").and_then(text_of).unwrap_or_default();
     o.reason = m.get("reason").and_then(text_of);
@@ -247,6 +252,8 @@ fn normalise(f: &Findings, op: &Value, notes: &mut Vec<String>) -> Result<Op, St
         Some(other) => notes.push(format!("stages: ignored {other}: an object {{\"E3\": \"name: description\"}}")),
     }
     let recovery: Vec<&Value> = match m.get("recovery") {
+        // Ignored (noted above) where the operation does not read it: no evidence from it either.
+        _ if !known.contains(&"recovery") => Vec::new(),
         Some(Value::Array(a)) => a.iter().collect(),
         Some(v @ Value::Object(_)) => vec![v],
         Some(Value::Null) | None => Vec::new(),
@@ -627,10 +634,11 @@ fn apply_one(
     let all_evidence: Vec<Evidence> = all_rounds.iter().map(|n| evidence_of(f, *n)).collect();
     let skill_ref = |lib: &Library| -> Result<Skill, String> {
         let id = op.skill.clone().unwrap_or_default();
-        lib.get(&id).cloned().ok_or_else(|| match lib.get(&slug_within(&id, ID_MAX, '-')) {
-            Some(_) => format!("names skill '{id}'; the library's id is '{}'", slug_within(&id, ID_MAX, '-')),
-            None => format!("names skill '{id}', which the library does not have"),
-        })
+        // The id as written, else as an id would be written ("Pick & Place" is pick-place).
+        lib.get(&id)
+            .or_else(|| lib.get(&slug_within(&id, ID_MAX, '-')))
+            .cloned()
+            .ok_or_else(|| format!("names skill '{id}', which the library does not have"))
     };
     let write = |lib: &mut Library, s: Skill| -> Result<Option<(String, u32)>, String> {
         s.validate().map_err(|e| e.to_string())?;

@@ -423,6 +423,19 @@ impl RunRecord {
                 });
                 continue;
             };
+            if r.observe_only {
+                // reset() and post_actions() are refused by design in this turn: nothing to judge.
+                notes.push("the observation-only turn".into());
+                if let Some(v) = exec["violation"].as_str() {
+                    notes.push(format!("sandbox: {v} (not a motion failure)"));
+                }
+                out.push(Label {
+                    exploration,
+                    notes,
+                    ..Label::new(r.n, Outcome::Unknown, vec!["observation only".into()], None)
+                });
+                continue;
+            }
             // How the program ended decides nothing about its motion (a program that pushed the
             // block and then raised on its own strict check still pushed it).
             let k = r.motion_segment();

@@ -193,7 +193,7 @@ pub fn run(skill: &Skill, o: &RunOpts) -> anyhow::Result<RunResult> {
 }
 
 /// The fixed targets of a skill's source rounds, as recorded (for the absolute-replay baseline):
-/// rule id → the pose that round sent, read again from its record with `skill_tools.py relate`.
+/// rule id → the pose that round sent, read again from its record (`skill_tools.py targets`).
 pub fn recorded_targets(root: &Path, skill: &Skill) -> anyhow::Result<Value> {
     let mut out = serde_json::Map::new();
     for stage in &skill.procedure {

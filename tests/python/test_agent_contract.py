@@ -113,6 +113,10 @@ ok = []
 for m in ["robo", "robo_perception", "robo_skills", "robo_services", "robo_memory", "numpy", "json", "zlib"]:
     __import__(m)
     ok.append(m)
+import sys
+sys.path.insert(0, "robot-skill/examples")
+import pick_object
+ok.append(pick_object.__name__)
 print("IMPORTED", json.dumps(ok))
 try:
     import mujoco
@@ -182,7 +186,7 @@ def test_every_document_module_and_hand_over_the_prompt_names_works(tmp_path: Pa
             assert any(x == p or x.startswith(p + "/") for x in readable), f"{rel} links {target}: not readable"
     # Every module the answer format names imports; others are refused with the list.
     imported = json.loads(re.search(r"IMPORTED (.*)", out).group(1))
-    assert "robo_memory" in imported and "robo_perception" in imported
+    assert "robo_memory" in imported and "robo_perception" in imported and "pick_object" in imported
     assert "UNSUPPORTED IMPORTED" not in out and "REFUSED No module named 'mujoco'" in out
     modules = re.search(r"A program may import (.*?); any other", system.replace("\n", " ")).group(1)
     for m in ("robo", "robo_perception", "robo_skills", "robo_services", "robo_memory", "numpy"):
@@ -198,7 +202,8 @@ def test_every_document_module_and_hand_over_the_prompt_names_works(tmp_path: Pa
     task = rs[1]
     text = task["feedback"]
     assert "REFUSED FIFTH show: at most 4 images" in task["exec"]["stdout"]
-    assert len(task["shown"]) == 4 and all((run / p).read_bytes()[:4] == b"\x89PNG" for p in task["shown"])
+    assert len(task["shown"]) == 4 and all((run / p["file"]).read_bytes()[:4] == b"\x89PNG" for p in task["shown"])
+    assert [p["name"] for p in task["shown"]] == [f"show/0{k}-view-{k - 1}.png" for k in range(1, 5)]
     assert "then the images it showed: show/01-view-0.png (128x96)" in text, text
     assert "Not shown: show/90-extra.png: at most 4 images are shown per program" in text
     assert "Not shown: show/00-not-a-png.png: not a PNG image" in text

@@ -61,6 +61,30 @@ def test_bound_targets_move_with_the_anchors_under_rigid_transforms() -> None:
     assert worst < 1e-9, worst
 
 
+def test_a_schema_1_skill_binds_a_thin_object_as_it_was_extracted() -> None:
+    """The line frame (schema 2) changes which way a thin box's x points; a skill written before
+    it (schema 1) must bind as it was admitted: SkillRunner reads the schema."""
+    from types import SimpleNamespace
+
+    from robo_perception.geometry import OrientedBox
+
+    bar = SimpleNamespace(obb=OrientedBox(np.array([0.5, 0.0, 0.02]), np.eye(3), np.array([0.2, 0.03, 0.02])),
+                          shape_name="bar")
+    ref = pose_to_matrix([0.5, 0.3, 0.3, math.pi, 0.0, 0.0])  # the TCP faces the bar across its length
+    rule = {"actor": "tcp", "anchor": {"object": "bar", "feature": "centre"}, "offset_m": [0.0, -0.03, 0.05],
+            "yaw_rad": 0.0, "tilt_rad": [math.pi, 0.0, 0.0]}
+    normal = [0.0, 0.0, 1.0]
+    line = rs.bind(rule, rs.Anchor.from_cluster(bar, normal, "bar"), ref)
+    box = rs.bind(rule, rs.Anchor.from_cluster(bar, normal, "bar", lines=False), ref)
+    assert line[1, 3] < 0.0, "schema 2: y toward the TCP, so -0.03 is past the bar, away from it"
+    assert abs(line[1, 3] + box[1, 3]) < 1e-9 and abs(box[1, 3] - 0.03) < 1e-9, (line[:3, 3], box[:3, 3])
+    for schema, want in ((1, box), (2, line)):
+        runner = rs.SkillRunner({"schema": schema, "rules": [], "objects": {}}, log=lambda e: None)
+        runner.find = lambda role, scene: bar  # type: ignore[method-assign]
+        got = rs.bind(rule, runner.anchor("bar", SimpleNamespace(plane=SimpleNamespace(normal=normal))), ref)
+        assert np.allclose(got, want), schema
+
+
 def test_relate_then_bind_gives_the_target_back() -> None:
     rng = np.random.default_rng(7)
     worst = 0.0

@@ -142,7 +142,11 @@ def save_png(path: Union[str, os.PathLike], image: np.ndarray, crop: Optional[Se
     never holds a half-written image. The folder must exist. ValueError for a bad image, crop
     or scale (nothing is written then).
     """
-    data = encode_png(crop_image(image, crop, scale))
+    return _write_atomic(path, encode_png(crop_image(image, crop, scale)))
+
+
+def _write_atomic(path: Union[str, os.PathLike], data: bytes) -> str:
+    """Writes ``data`` under a temporary name in the folder of ``path``, then renames it."""
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     base = os.path.basename(path)
@@ -174,6 +178,8 @@ MAX_SHOWN = 4
 """Images the host attaches per program; more are not shown (the feedback names them)."""
 MAX_SHOWN_SIDE = 1280
 """Largest width or height of an image the host attaches, pixels."""
+MAX_SHOWN_BYTES = 2 << 20
+"""Largest PNG file the host attaches, bytes."""
 
 
 def show(image: np.ndarray, name: str = "image", crop: Optional[Sequence[float]] = None, scale: int = 1) -> str:
@@ -181,18 +187,22 @@ def show(image: np.ndarray, name: str = "image", crop: Optional[Sequence[float]]
     ``show/<NN>-<name>.png`` in the current folder, which the host attaches to the next request
     after the fresh camera images (in a stage program; elsewhere it is just a file). Returns the
     path. ValueError for a bad image, crop or scale, a result wider or taller than
-    ``MAX_SHOWN_SIDE``, or a program's ``MAX_SHOWN + 1``-th image (nothing is written then).
+    ``MAX_SHOWN_SIDE``, a PNG larger than ``MAX_SHOWN_BYTES``, or a program's ``MAX_SHOWN + 1``-th
+    image (nothing is written then).
     """
     a = crop_image(image, crop, scale)
     if max(a.shape[:2]) > MAX_SHOWN_SIDE:
         raise ValueError(f"show: the image is {a.shape[1]}x{a.shape[0]} pixels; at most {MAX_SHOWN_SIDE} on a side "
                          f"are shown: crop it or use a smaller scale")
+    data = encode_png(a)
+    if len(data) > MAX_SHOWN_BYTES:
+        raise ValueError(f"show: the image is {len(data)} bytes as a PNG; at most {MAX_SHOWN_BYTES} are shown: crop it")
     os.makedirs(SHOW_DIR, exist_ok=True)
     taken = sorted(n for n in os.listdir(SHOW_DIR) if n.endswith(".png") and not n.startswith("."))
     if len(taken) >= MAX_SHOWN:
         raise ValueError(f"show: at most {MAX_SHOWN} images are shown per program ({', '.join(taken)} already)")
     clean = "".join(c if c.isascii() and (c.isalnum() or c in "-_") else "-" for c in str(name))[:40] or "image"
-    return save_png(os.path.join(SHOW_DIR, f"{len(taken) + 1:02d}-{clean}.png"), a)
+    return _write_atomic(os.path.join(SHOW_DIR, f"{len(taken) + 1:02d}-{clean}.png"), data)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -104,7 +104,9 @@ class SkillRunner:
         return found[0]
 
     def anchor(self, role: str, scene) -> Anchor:
-        return Anchor.from_cluster(self.find(role, scene), scene.plane.normal, role)
+        # A skill of schema 1 was extracted and admitted before the line frame (frames.py).
+        lines = int(self.skill.get("schema", 1)) >= 2
+        return Anchor.from_cluster(self.find(role, scene), scene.plane.normal, role, lines=lines)
 
     def in_hand(self, role: str, scene, state: dict) -> Anchor:
         """The anchor of an ``in_hand`` rule: the object is not looked for (seen through the

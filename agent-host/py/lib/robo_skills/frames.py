@@ -81,7 +81,7 @@ class Anchor:
     name: str = ""
 
     @staticmethod
-    def from_cluster(cluster, plane_normal: Sequence[float], name: str = "") -> "Anchor":
+    def from_cluster(cluster, plane_normal: Sequence[float], name: str = "", lines: bool = True) -> "Anchor":
         box = cluster.obb
         ext = np.asarray(box.extents, dtype=float)
         ratio = float(ext[1] / ext[0]) if ext[0] > 1e-9 else 1.0
@@ -91,7 +91,8 @@ class Anchor:
         elif ratio >= SQUARE_RATIO:
             symmetry = "square"
         else:
-            symmetry = "line" if ratio < LINE_RATIO else "box"
+            # `lines`: the line frame (skill schema 2 on); a schema-1 skill binds as it was extracted.
+            symmetry = "line" if (lines and ratio < LINE_RATIO) else "box"
         return Anchor(np.asarray(box.center, dtype=float), np.asarray(box.axes, dtype=float), ext,
                       np.asarray(plane_normal, dtype=float), symmetry, name)
 
