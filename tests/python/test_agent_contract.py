@@ -134,8 +134,9 @@ import numpy as np
 from robo import get_state, post_actions
 import robo_perception as rp
 s = get_state(["agentview"], raw=True)
-for k in range(4):
+for k in range(3):
     print("shown", rp.show(s["image"]["agentview"], f"view {k}", crop=(0, 0, 64 + 16 * k, 48), scale=2))
+rp.save_png("show/04-" + "a" * 200 + ".png", s["image"]["agentview"][:48, :64])  # a legal, long name
 try:
     rp.show(s["image"]["agentview"], "fifth")
 except ValueError as e:
@@ -203,7 +204,9 @@ def test_every_document_module_and_hand_over_the_prompt_names_works(tmp_path: Pa
     text = task["feedback"]
     assert "REFUSED FIFTH show: at most 4 images" in task["exec"]["stdout"]
     assert len(task["shown"]) == 4 and all((run / p["file"]).read_bytes()[:4] == b"\x89PNG" for p in task["shown"])
-    assert [p["name"] for p in task["shown"]] == [f"show/0{k}-view-{k - 1}.png" for k in range(1, 5)]
+    assert [p["name"] for p in task["shown"]] == [f"show/0{k}-view-{k - 1}.png" for k in range(1, 4)] + [
+        "show/04-" + "a" * 200 + ".png"]
+    assert [p["file"] for p in task["shown"]] == [f"rounds/002/shown/{k}.png" for k in range(1, 5)]
     assert "then the images it showed: show/01-view-0.png (128x96)" in text, text
     assert "Not shown: show/90-extra.png: at most 4 images are shown per program" in text
     assert "Not shown: show/00-not-a-png.png: not a PNG image" in text

@@ -430,3 +430,25 @@ def test_a_real_model_s_extraction_answer_yields_a_skill(tmp_path: Path) -> None
     assert all(len(r["id"]) <= 64 for r in skill["rules"])
     assert sorted(e["round"] for e in skill["evidence"]) == [3, 4, 5, 6, 7]
     assert {"kind": "moved", "object": "grey_bar"}.items() <= skill["procedure"][2]["checks"][0].items()
+
+
+def test_a_broken_observation_costs_only_the_rounds_that_need_it(tmp_path: Path) -> None:
+    """The real open_drawer record with one observation file broken (the one the verify round,
+    E7, starts from): E7 is skipped with the reason, and the model's answer still becomes a
+    skill from the other rounds it cites."""
+    with tarfile.open(REAL / "record.tar.xz") as t:
+        t.extractall(tmp_path, filter="data")
+    run = tmp_path / "run"
+    for name in ("config.json", "result.json"):
+        p = run / name
+        p.write_text(p.read_text().replace("<CHECKOUT>", str(ROOT)).replace("<RUN>", str(run)))
+    (run / "rounds" / "006" / "obs.npz").write_bytes(b"not an npz file")
+    lib = tmp_path / "library"
+    rc, out, err = r2g("skills", "extract", str(run), "--llm", f"scripted:{REAL / 'extraction.cassette.jsonl'}",
+                       "--library", str(lib), "--admit-runs", "0")
+    assert rc == 0, err[-3000:]
+    assert last_json(out)["written"] == [["add", "open-drawer-bar-handle-topgrasp-pull", 1]], out[-2000:]
+    report = json.loads((run / "extraction.json").read_text())
+    skipped = dict((n, why) for n, why in report["skipped"])
+    assert 7 in skipped and "could not be read" in skipped[7], report["skipped"]
+    assert len(skipped) == 1, report["skipped"]
