@@ -383,6 +383,17 @@ def test_an_episode_given_skills_logs_its_selection_and_the_viewer_shows_it(lear
 REAL = ROOT / "tests" / "data" / "real-model" / "open_drawer"
 
 
+def real_record(tmp_path: Path) -> Path:
+    """The real open_drawer record, unpacked into `tmp_path/run` with this checkout's paths."""
+    with tarfile.open(REAL / "record.tar.xz") as t:
+        t.extractall(tmp_path, filter="data")
+    run = tmp_path / "run"
+    for name in ("config.json", "result.json"):
+        p = run / name
+        p.write_text(p.read_text().replace("<CHECKOUT>", str(ROOT)).replace("<RUN>", str(run)))
+    return run
+
+
 def test_a_real_model_s_extraction_answer_yields_a_skill(tmp_path: Path) -> None:
     """The open_drawer run in which a real model chose every decision and wrote the extraction
     answer (tests/data/real-model/, NOT synthetic). `record.tar.xz` (1.4 MB) holds what
@@ -392,12 +403,7 @@ def test_a_real_model_s_extraction_answer_yields_a_skill(tmp_path: Path) -> None
     id over 64 characters); now every round is labelled from what physics measured, the warm-up
     before reset() is kept out, the handle keeps one name, and the answer becomes one skill whose
     stages keep the model's words."""
-    with tarfile.open(REAL / "record.tar.xz") as t:
-        t.extractall(tmp_path, filter="data")
-    run = tmp_path / "run"
-    for name in ("config.json", "result.json"):
-        p = run / name
-        p.write_text(p.read_text().replace("<CHECKOUT>", str(ROOT)).replace("<RUN>", str(run)))
+    run = real_record(tmp_path)
     lib = tmp_path / "library"
     rc, out, err = r2g("skills", "extract", str(run), "--llm", f"scripted:{REAL / 'extraction.cassette.jsonl'}",
                        "--library", str(lib), "--admit-runs", "0")
@@ -436,12 +442,7 @@ def test_a_broken_observation_costs_only_the_rounds_that_need_it(tmp_path: Path)
     """The real open_drawer record with one observation file broken (the one the verify round,
     E7, starts from): E7 is skipped with the reason, and the model's answer still becomes a
     skill from the other rounds it cites."""
-    with tarfile.open(REAL / "record.tar.xz") as t:
-        t.extractall(tmp_path, filter="data")
-    run = tmp_path / "run"
-    for name in ("config.json", "result.json"):
-        p = run / name
-        p.write_text(p.read_text().replace("<CHECKOUT>", str(ROOT)).replace("<RUN>", str(run)))
+    run = real_record(tmp_path)
     (run / "rounds" / "006" / "obs.npz").write_bytes(b"not an npz file")
     lib = tmp_path / "library"
     rc, out, err = r2g("skills", "extract", str(run), "--llm", f"scripted:{REAL / 'extraction.cassette.jsonl'}",
