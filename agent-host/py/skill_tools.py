@@ -204,7 +204,11 @@ class Identities:
         self.role_of_track: dict[int, str] = {}
         self.spec: dict[str, dict] = {}   # role -> {"prompt", "class"}
 
-    def observe(self, scene, native: dict) -> None:
+    def observe(self, scene, native: dict, held: Optional[list] = None) -> None:
+        """Names the tracks of `scene` by the scene objects the trace places at `native` (name ->
+        position); `held`: the scene objects the fingers hold then, by the trace: a cluster
+        perception flags held is that object even where the fingers leave only a slice of it
+        in view, off its centre (a bowl held by its rim)."""
         seen_natives = {n for t, n in self.native_of_track.items() if any(o.track_id == t for o in scene.objects)}
         pairs = []
         for name, p in native.items():
@@ -224,6 +228,10 @@ class Identities:
             used_n.add(name)
             used_t.add(tid)
             self.native_of_track[tid] = name
+        free_held = [n for n in (held or []) if n not in seen_natives and n not in used_n]
+        held_clusters = [o for o in scene.objects if o.held and o.track_id not in self.native_of_track]
+        if len(free_held) == 1 and len(held_clusters) == 1:
+            self.native_of_track[held_clusters[0].track_id] = free_held[0]
         for o in scene.objects:
             n = self.native_of_track.get(o.track_id)
             if n is not None and n not in self.role_of_native:
@@ -311,16 +319,23 @@ def relate_scene(scene, state: dict, calls: list, ident: Identities, ctx: dict) 
             return float(np.linalg.norm(np.asarray(o.center)[:2] - tp[:2]))
 
         # The object this target is about: a fixture's part being pulled or pushed (above);
-        # else one the target is at (inside its box grown by 2 cm; the smallest such: a handle
-        # before its cabinet); else one it is over (within its footprint), of those not in the
-        # hand when the round began; else the object in the hand when the target is right above
-        # it (a lift); else the nearest free one in the plane (a mark on the table included);
-        # else the held one.
+        # else the object in the hand when the target is right above it (a lift: whatever else
+        # perception sees near the hand then, a slice of the arm included, is not what a lift is
+        # about); else one the target is at (inside its box grown by 2 cm; the smallest such: a
+        # handle before its cabinet); else one it is over (within its footprint), of those not
+        # in the hand when the round began; else the nearest free one in the plane (a mark on the
+        # table included); else the held one.
         at = [o for o in free if bool(o.obb.contains(tp[None], margin=NEAR_M)[0])]
         over = [o for o in free if bool(o.obb.contains(np.array([[tp[0], tp[1], float(o.center[2])]]), margin=0.01)[0])]
         pulling = part is not None and m["gripper_to"] > GRIP_CLOSED and m["gripper_from"] > GRIP_CLOSED
+        # A lift: the hand, closed on a scene object, moves up from where it holds it (a bowl
+        # held by its rim is lifted from its rim, off the bowl's centre).
+        straight_up = float(np.linalg.norm(tp[:2] - tcp0[:2])) < HELD_ABOVE_M and tp[2] > tcp0[2]
+        lifting = [o for o in held if ident.is_native(o)] if straight_up and m["gripper_from"] > GRIP_CLOSED else []
         if pulling:
             obj = part
+        elif lifting:
+            obj = min(lifting, key=lambda o: float(np.linalg.norm(np.asarray(o.center) - tcp0)))
         elif at:
             obj = min(at, key=lambda o: float(np.prod(np.maximum(o.obb.extents, 0.005))))
         elif over:
@@ -388,7 +403,7 @@ def relate_record(req: dict) -> dict:
     scenes: dict[str, tuple] = {}
     unreadable: dict[str, str] = {}
 
-    def seen(path: Optional[str], native: Optional[dict]):
+    def seen(path: Optional[str], native: Optional[dict], held: Optional[list] = None):
         """An observation, segmented with the record's tracker; an observation that cannot be read
         or segmented costs only the rounds that need it (named in `unreadable`)."""
         if not path or path in unreadable:
@@ -400,14 +415,14 @@ def relate_record(req: dict) -> dict:
             except Exception as e:  # noqa: BLE001 - a broken file is one round's problem
                 unreadable[path] = f"{type(e).__name__}: {e}"
                 return None
-            ident.observe(scene, {k: np.asarray(v, dtype=float) for k, v in (native or {}).items()})
+            ident.observe(scene, {k: np.asarray(v, dtype=float) for k, v in (native or {}).items()}, held)
             scenes[path] = (scene, state)
         return scenes[path]
 
     order = req.get("rounds") or []
     for r in order:
-        seen(r.get("obs"), r.get("native"))
-        seen(r.get("obs_after"), r.get("native_after"))
+        seen(r.get("obs"), r.get("native"), r.get("held"))
+        seen(r.get("obs_after"), r.get("native_after"), r.get("held_after"))
     out = {}
     for r in order:
         if not r.get("relate"):

@@ -139,6 +139,7 @@ pub fn analyse(root: &Path, run: &Path) -> anyhow::Result<Findings> {
         rounds.push(json!({
             "round": r.n, "obs": obs, "obs_after": r.obs_after, "calls": r.motion_calls(),
             "native": record.native_at(*episode, *t0), "native_after": record.native_at(*episode, *t1),
+            "held": record.held_at(*episode, *t0), "held_after": record.held_at(*episode, *t1),
             "relate": l.usable() && obs.is_some(), "pushed": pushed, "gripper_commanded": g,
         }));
     }

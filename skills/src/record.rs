@@ -319,6 +319,26 @@ impl RunRecord {
         out
     }
 
+    /// The objects the closed fingers hold at time `t` of sim-host episode `episode` (touching the
+    /// robot with the fingers short of open, as `effects` calls an object grasped).
+    pub fn held_at(&self, episode: usize, t: f64) -> Vec<String> {
+        let Some(tr) = self.trace(episode) else { return Vec::new() };
+        let (Some(k), Some(robot)) = (at(&tr, t), tr.owners.iter().position(|o| o == "robot")) else {
+            return Vec::new();
+        };
+        let s = &tr.samples[k];
+        if s.finger_m >= 0.95 * tr.finger_max_m {
+            return Vec::new();
+        }
+        let robot = robot as u16;
+        tr.objects
+            .iter()
+            .enumerate()
+            .filter(|&(i, _)| s.contacts.contains(&[(i as u16).min(robot), (i as u16).max(robot)]))
+            .map(|(_, n)| n.clone())
+            .collect()
+    }
+
     /// Where the trace has each object when round `round`'s motion begins (empty without a trace).
     pub fn native_positions(&self, round: u32) -> BTreeMap<String, [f64; 3]> {
         let Some(i) = self.rounds.iter().position(|r| r.n == round) else { return BTreeMap::new() };
