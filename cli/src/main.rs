@@ -159,6 +159,17 @@ enum Cmd {
         #[arg(long, default_value = "default")]
         instance: String,
     },
+    /// Stop an instance that `r2g up` runs (SIGTERM to that `r2g up`, by the pid it wrote to
+    /// <run folder>/up.pid) and return once it has exited: its processes are stopped and the last
+    /// episode's verdict is written (with --trace-dir). Exits 0 when it stopped, 1 when no such
+    /// instance runs here or it did not stop in time (nothing else is signalled).
+    Down {
+        #[arg(long, default_value = "default")]
+        instance: String,
+        /// How long to wait for it to exit, s.
+        #[arg(long, default_value_t = 60.0)]
+        timeout_s: f64,
+    },
     /// List the gyms of the pack, one name per line.
     Gyms,
     /// Replay a gym's demonstration in lockstep (controller at 1 kHz, one physics step per
@@ -686,6 +697,7 @@ fn main() {
             }
             up(&gym, mode, &instance, render_hz, sim_args, rc, control_args, &side, &placement)
         }
+        Cmd::Down { instance, timeout_s } => down(&instance, timeout_s),
         Cmd::Clear { instance } => runtime::operator::clear_fault(&instance).map(|(_cleared, reason)| {
             println!("{reason}");
             0
@@ -1066,18 +1078,101 @@ fn up(
         ready_timeout: Duration::from_secs(60),
     };
     let mut inst = Instance::up_with(&opts, side)?;
+    // Only once the instance is up (a second `up` of a running instance is refused before this),
+    // so the file always names the `r2g up` that runs it.
+    let pid_file = launch::up_pid_file(instance);
+    write_pid_file(&pid_file)?;
     println!("READY {instance}");
     std::io::stdout().flush()?;
-    match inst.supervise()? {
-        None => {
+    let supervised = inst.supervise();
+    let rc = match supervised {
+        Ok(None) => {
             inst.stop();
             eprintln!("r2g: instance '{instance}' stopped");
             Ok(0)
         }
-        Some(what) => {
+        Ok(Some(what)) => {
             eprintln!("r2g: {what}; stopping instance '{instance}'");
             inst.stop();
             Ok(1)
         }
+        Err(e) => Err(e),
+    };
+    // Gone with the instance (its processes have exited and the last verdict is written).
+    if std::fs::read_to_string(&pid_file).is_ok_and(|p| p.trim() == std::process::id().to_string()) {
+        let _ = std::fs::remove_file(&pid_file);
     }
+    rc
+}
+
+/// Writes this process's pid to `path` (write, then rename: never half written).
+fn write_pid_file(path: &std::path::Path) -> anyhow::Result<()> {
+    use anyhow::Context as _;
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let tmp = path.with_extension(format!("pid.{}.partial", std::process::id()));
+    std::fs::write(&tmp, format!("{}\n", std::process::id()))
+        .and_then(|_| std::fs::rename(&tmp, path))
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+/// The command line of process `pid` (NUL-separated arguments), if it exists.
+fn cmdline(pid: i32) -> Option<Vec<String>> {
+    let raw = std::fs::read(format!("/proc/{pid}/cmdline")).ok()?;
+    Some(raw.split(|&b| b == 0).filter(|a| !a.is_empty()).map(|a| String::from_utf8_lossy(a).into_owned()).collect())
+}
+
+/// Whether `pid` has exited (gone, or a zombie its parent has not reaped yet).
+fn exited(pid: i32) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        // The state follows the command name in parentheses, which may itself hold ')'.
+        Ok(stat) => stat.rsplit_once(')').is_some_and(|(_, rest)| rest.trim_start().starts_with(['Z', 'X'])),
+        Err(_) => true,
+    }
+}
+
+/// `r2g down`: SIGTERM to the `r2g up` of `instance` (checked by its command line, so a pid
+/// reused by another process is never signalled), then wait until it has exited.
+fn down(instance: &str, timeout_s: f64) -> anyhow::Result<i32> {
+    if !(timeout_s.is_finite() && timeout_s > 0.0) {
+        anyhow::bail!("--timeout-s must be a positive number of seconds");
+    }
+    let file = launch::up_pid_file(instance);
+    let Ok(text) = std::fs::read_to_string(&file) else {
+        eprintln!("r2g down: no `r2g up` of instance '{instance}' runs here (no {})", file.display());
+        return Ok(1);
+    };
+    let Ok(pid) = text.trim().parse::<i32>() else {
+        anyhow::bail!("{} holds {:?}, not a pid", file.display(), text.trim());
+    };
+    let is_ours = cmdline(pid).is_some_and(|args| {
+        let up = args.iter().skip(1).any(|a| a == "up");
+        let named = args.windows(2).any(|w| w[0] == "--instance" && w[1] == instance)
+            || args.iter().any(|a| a == &format!("--instance={instance}"))
+            || (instance == "default" && !args.iter().any(|a| a.starts_with("--instance")));
+        up && named && args.first().is_some_and(|a| a.ends_with("r2g"))
+    });
+    if exited(pid) || !is_ours {
+        eprintln!(
+            "r2g down: {} names pid {pid}, which is not a running `r2g up --instance {instance}` (a stale file); \
+             nothing was signalled",
+            file.display()
+        );
+        return Ok(1);
+    }
+    // SAFETY: signals the process the pid file names, checked above to be that instance's `r2g up`.
+    if unsafe { libc::kill(pid, libc::SIGTERM) } != 0 {
+        anyhow::bail!("signalling pid {pid}: {}", std::io::Error::last_os_error());
+    }
+    let t0 = std::time::Instant::now();
+    while !exited(pid) {
+        if t0.elapsed().as_secs_f64() > timeout_s {
+            eprintln!("r2g down: `r2g up` (pid {pid}) of instance '{instance}' is still running after {timeout_s:.0} s");
+            return Ok(1);
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    eprintln!("r2g down: instance '{instance}' stopped (r2g up, pid {pid}, has exited)");
+    Ok(0)
 }

@@ -18,6 +18,12 @@ pub fn gyms_dir() -> PathBuf {
     checkout_dir("R2G_GYMS", "gyms")
 }
 
+/// Where `r2g up` writes its pid while the instance runs (`r2g down` and scripts read it):
+/// `up.pid` in the instance's run folder (`ipc_schema::process::run_dir`).
+pub fn up_pid_file(instance: &str) -> PathBuf {
+    ipc_schema::process::run_dir(instance).join("up.pid")
+}
+
 /// The shipped robot configuration: `$R2G_ROBOT_CONFIG`, else
 /// `robot-skill/config/robot.json` of the checkout.
 pub fn default_robot_config() -> PathBuf {

@@ -106,3 +106,38 @@ fn a_malformed_scene_is_refused_with_its_problem() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn down_returns_once_up_has_exited_with_its_last_verdict_written() {
+    let name = instance("dn");
+    let traces = std::env::temp_dir().join(format!("r2g-down-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&traces);
+    let mut up = Up::start(GYM, &name, &["--mode", "lockstep", "--trace-dir", traces.to_str().expect("utf-8")]);
+    let pid_file = ipc_schema::process::run_dir(&name).join("up.pid");
+    let pid: u32 = std::fs::read_to_string(&pid_file).expect("r2g up writes its pid").trim().parse().expect("a pid");
+    assert_eq!(pid, up.child.id());
+    let down = |name: &str| {
+        std::process::Command::new(integration_tests::r2g())
+            .args(["down", "--instance", name])
+            .output()
+            .expect("run r2g down")
+    };
+    let out = down(&name);
+    assert_eq!(out.status.code(), Some(0), "{}", String::from_utf8_lossy(&out.stderr));
+    // Returned only after `r2g up` exited (0: stopped on request) and the episode was judged.
+    assert_eq!(up.wait_exit(Duration::from_millis(200)), Some(Some(0)), "r2g up still runs after r2g down");
+    assert!(traces.join("episode-1.eval.json").is_file(), "the last verdict is written before down returns");
+    assert!(!pid_file.exists(), "the pid file goes with the instance");
+    // Nothing runs any more: a clear refusal, nothing signalled.
+    let out = down(&name);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no `r2g up` of instance"));
+    // A stale file naming a process that is not this instance's `r2g up` (this test): refused.
+    std::fs::create_dir_all(pid_file.parent().expect("run folder")).expect("run folder");
+    std::fs::write(&pid_file, format!("{}\n", std::process::id())).expect("plant a stale pid file");
+    let out = down(&name);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("nothing was signalled"));
+    let _ = std::fs::remove_file(&pid_file);
+    let _ = std::fs::remove_dir_all(&traces);
+}
