@@ -1168,7 +1168,9 @@ fn down(instance: &str, timeout_s: f64) -> anyhow::Result<i32> {
     let t0 = std::time::Instant::now();
     while !exited(pid) {
         if t0.elapsed().as_secs_f64() > timeout_s {
-            eprintln!("r2g down: `r2g up` (pid {pid}) of instance '{instance}' is still running after {timeout_s:.0} s");
+            eprintln!(
+                "r2g down: `r2g up` (pid {pid}) of instance '{instance}' is still running after {timeout_s:.0} s"
+            );
             return Ok(1);
         }
         std::thread::sleep(Duration::from_millis(20));
