@@ -34,7 +34,17 @@ class ControlFeedback(TypedDict):
     """Microseconds from submission until the runtime accepted the chunk; None if not accepted."""
     submit_to_first_motion_us: Optional[float]
     """Microseconds from submission until measured motion began; None if the arm did not move."""
+    contact: Optional[Contact]
+    """The force felt during the chunk; None when it never ran (rejected, a reset)."""
     grasp: Grasp
+
+class Contact(TypedDict):
+    """The magnitude of the filtered external force over a chunk, from acceptance to its end."""
+
+    peak_n: float
+    mean_n: float
+    peak_waypoint: int
+    """The waypoint (0-based) the arm was heading for at the peak."""
     """What the gripper knows about its fingers now (not tied to the last request)."""
 
 class Grasp(TypedDict):

@@ -112,7 +112,7 @@ class Session:
         else:
             kind = status if status in ("executed", "rejected") else "failed"
             self.chunks[kind] += 1
-        self.last = {"fn": fn, **{k: fb.get(k) for k in ("status", "reason", "executed")}}
+        self.last = {"fn": fn, **{k: fb.get(k) for k in ("status", "reason", "executed", "contact")}}
 
     def call(self, req: dict) -> object:
         fn, args, kwargs = req.get("fn"), req.get("args", []), req.get("kwargs", {})
@@ -174,7 +174,7 @@ class Session:
         fb = after["control_feedback"]
         self.outcome(fn, fb)
         entry = {"fn": "post_actions", "result": r, "t_before": t_before, "t_after": after["timestamp"],
-                 "feedback": {k: fb.get(k) for k in ("status", "reason", "executed")}}
+                 "feedback": {k: fb.get(k) for k in ("status", "reason", "executed", "contact")}}
         if isinstance(cmd, dict):
             entry.update(type=cmd.get("type"), freq=cmd.get("freq"), actions=cmd.get("actions"))
         self.log(entry)

@@ -286,10 +286,17 @@ pub fn feedback_text(f: &Feedback) -> String {
     ));
     match &r.last_call {
         Some(c) => {
-            let executed = match c["executed"].as_u64() {
+            let mut executed = match c["executed"].as_u64() {
                 Some(n) if c["fn"] == "post_actions" => format!(", {n} waypoint(s) executed"),
                 _ => String::new(),
             };
+            let contact = &c["contact"];
+            if let (Some(peak), Some(mean)) = (contact["peak_n"].as_f64(), contact["mean_n"].as_f64()) {
+                executed.push_str(&format!(
+                    "; contact force over the chunk: peak {peak:.2} N (heading for waypoint {}), mean {mean:.2} N",
+                    contact["peak_waypoint"]
+                ));
+            }
             t.push_str(&format!(
                 "Its last robot call: {}() → {} — {}{executed}.\n",
                 c["fn"].as_str().unwrap_or("?"),

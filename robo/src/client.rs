@@ -58,6 +58,17 @@ pub struct Feedback {
     pub accepted_us: Option<f64>,
     /// Submission → first measured motion, µs.
     pub first_motion_us: Option<f64>,
+    /// The force felt over the chunk (largest and mean magnitude, N; the waypoint at the
+    /// largest); None for a request that never ran (a rejection, a reset).
+    pub contact: Option<Contact>,
+}
+
+/// [`Feedback::contact`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Contact {
+    pub peak_n: f64,
+    pub mean_n: f64,
+    pub peak_waypoint: u32,
 }
 
 impl Default for Feedback {
@@ -70,6 +81,7 @@ impl Default for Feedback {
             final_joint_error_rad: 0.0,
             accepted_us: None,
             first_motion_us: None,
+            contact: None,
         }
     }
 }
@@ -441,6 +453,11 @@ impl Client {
             final_joint_error_rad: reply.final_joint_error_rad,
             accepted_us: since(reply.accepted_ns),
             first_motion_us: since(reply.first_motion_ns),
+            contact: (reply.contact_ticks > 0).then_some(Contact {
+                peak_n: reply.contact_peak_n,
+                mean_n: reply.contact_mean_n,
+                peak_waypoint: reply.contact_peak_waypoint,
+            }),
         };
         i32::from(status == Status::Executed)
     }
@@ -463,6 +480,7 @@ impl Client {
             final_joint_error_rad: 0.0,
             accepted_us: None,
             first_motion_us: None,
+            contact: None,
         };
         0
     }

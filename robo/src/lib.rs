@@ -321,6 +321,17 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>, raw: boo
     fb.set_item("final_joint_error_rad", feedback.final_joint_error_rad)?;
     fb.set_item("submit_to_accept_us", feedback.accepted_us)?;
     fb.set_item("submit_to_first_motion_us", feedback.first_motion_us)?;
+    let contact = match feedback.contact {
+        Some(c) => {
+            let d = PyDict::new(py);
+            d.set_item("peak_n", c.peak_n)?;
+            d.set_item("mean_n", c.mean_n)?;
+            d.set_item("peak_waypoint", c.peak_waypoint)?;
+            Some(d)
+        }
+        None => None,
+    };
+    fb.set_item("contact", contact)?;
     // What the gripper knows about its fingers now: a Robotiq's own object detection, or for
     // grippers without one the fingers stopped short of a closing command.
     let grasp = PyDict::new(py);

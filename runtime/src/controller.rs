@@ -58,13 +58,30 @@ struct Active {
     /// Measured joints and finger at acceptance, to see the first motion.
     q0: [f64; N_JOINTS],
     finger0: f64,
+    /// The filtered external force over the chunk so far.
+    contact: ContactStats,
+}
+
+/// The force felt over a chunk: every tick's magnitude of the filtered external force.
+#[derive(Debug, Clone, Copy, Default)]
+struct ContactStats {
+    peak_n: f64,
+    sum_n: f64,
+    ticks: u32,
+    peak_waypoint: u32,
 }
 
 impl Active {
-    /// Stamps a reply to this chunk with its acceptance and first-motion times.
+    /// Stamps a reply to this chunk with its acceptance and first-motion times and the force
+    /// felt over it.
     fn stamp(&self, mut r: Reply) -> Reply {
         r.accepted_ns = self.accepted_ns;
         r.first_motion_ns = self.first_motion_ns;
+        let c = &self.contact;
+        r.contact_peak_n = c.peak_n;
+        r.contact_mean_n = if c.ticks > 0 { c.sum_n / f64::from(c.ticks) } else { 0.0 };
+        r.contact_peak_waypoint = c.peak_waypoint;
+        r.contact_ticks = c.ticks;
         r
     }
 }
@@ -787,6 +804,7 @@ impl Controller {
             first_motion_ns: 0,
             q0: state.q_rad,
             finger0: state.finger_m,
+            contact: ContactStats::default(),
         });
         self.force_at_start_n = norm(self.force_n);
         let mut accepted = Reply::new(job.id, job.client, Status::Accepted, "accepted: executing");
@@ -984,6 +1002,17 @@ impl Controller {
         let alpha = self.dt_s / (FORCE_FILTER_S + self.dt_s);
         for (f, m) in self.force_n.iter_mut().zip(state.external_force_n) {
             *f += alpha * (m - *f);
+        }
+        if let Some(a) = self.active.as_mut() {
+            let f = self.force_n.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let c = &mut a.contact;
+            c.sum_n += f;
+            c.ticks = c.ticks.saturating_add(1);
+            if f > c.peak_n {
+                c.peak_n = f;
+                // The waypoint the arm heads for (0-based; the last once all are reached).
+                c.peak_waypoint = self.reference.reached.min(self.plan.len().saturating_sub(1)) as u32;
+            }
         }
         if let Some(r) = self.contact_reflex() {
             self.stop_reply = Some(r);
