@@ -299,11 +299,20 @@ impl Client {
             };
             return Err(RoboError::UnknownCamera { name: name.into(), known });
         };
-        let (not_before_reset, not_before_s) = (self.settled_reset, self.settled_s);
+        let (mut not_before_reset, mut not_before_s) = (self.settled_reset, self.settled_s);
         let submitted_ns = self.submitted_ns;
         // Lockstep time stands still while nothing moves, so a frame may be old and current;
         // on the wall clock every frame is rendered or captured continually.
         let wall = self.last_state.is_none_or(|s| s.mode != ipc_schema::Mode::Lockstep as u32);
+        if let (false, Some(s)) = (wall, self.last_state.as_ref()) {
+            // Nothing moves between requests in lockstep: the frame must show the state as it is
+            // now, also for a client that moved nothing itself (another process did: a program's
+            // proxy, then the host that observes after it), whose own `settled_s` says nothing.
+            let ahead = (s.reset_id as u32).wrapping_sub(not_before_reset) as i32;
+            if ahead > 0 || (ahead == 0 && s.timestamp_s > not_before_s) {
+                (not_before_reset, not_before_s) = (s.reset_id as u32, s.timestamp_s);
+            }
+        }
         let t0 = Instant::now();
         loop {
             let cam = &mut self.cameras[i];

@@ -14,6 +14,7 @@ import re
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import R2G, ROOT
@@ -65,6 +66,12 @@ def check_feedback_is_true(run: Path) -> None:
         # the program's own output, verbatim (feedback.txt is what tools read)
         assert r["exec"]["stdout"].strip() in text
         assert (run / f"rounds/{r['round']:03d}/feedback.txt").read_text() == text
+        # The images the host shows (and extraction reads) show the state after the program, not
+        # a frame the renderer had made earlier in its motion (lockstep: nothing moves meanwhile).
+        with np.load(run / r["obs_after"]) as obs:
+            numbers = json.loads(str(obs["state_json"]))
+        for cam, t in numbers["image_timestamp"].items():
+            assert t >= numbers["timestamp"] - 1e-9, (r["round"], cam, t, numbers["timestamp"])
 
 
 @pytest.mark.parametrize("gym", sorted(REAL_RUNS))
