@@ -41,17 +41,19 @@ import mujoco  # noqa: E402
 
 
 class LiveGym:
-    """One `r2g up` process, stopped with SIGTERM to its own pid. `use` points this process's
-    `robo` at it; `stop` points it back where it pointed before (a fixture's instance)."""
+    """One `r2g up` process (`mode` lockstep, or wall for real time), stopped with SIGTERM to its
+    own pid. `use` points this process's `robo` at it; `stop` points it back where it pointed
+    before (a fixture's instance)."""
 
-    def __init__(self, r2g: Path, gyms_dir: Path, gym: str, trace_dir: Optional[Path] = None, tag: str = "g"):
+    def __init__(self, r2g: Path, gyms_dir: Path, gym: str, trace_dir: Optional[Path] = None, tag: str = "g",
+                 mode: str = "lockstep"):
         self.gym = gym
         self.previous_instance = os.environ.get("R2G_INSTANCE")
         self.instance = f"{tag}{os.getpid()}_{gym}"
         self.scene_path = gyms_dir / gym / "scene.toml"
         self.scene = tomllib.loads(self.scene_path.read_text())
         self.trace_dir = trace_dir
-        cmd = [str(r2g), "up", gym, "--instance", self.instance, "--mode", "lockstep"]
+        cmd = [str(r2g), "up", gym, "--instance", self.instance, "--mode", mode]
         if trace_dir is not None:
             cmd += ["--trace-dir", str(trace_dir)]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
@@ -201,6 +203,49 @@ class TruthRenderer:
     def masks(self, camera: str) -> dict[str, np.ndarray]:
         seg = self.segmentation(camera)
         return {n: seg == i for i, n in enumerate(self.names)}
+
+    def geom_segmentation(self, camera: str) -> np.ndarray:
+        """(H, W) int array of the geom drawn at each pixel; -1 where nothing is drawn. Finer
+        than `segmentation`: it tells a door's leaf from its handle."""
+        self.renderer.enable_segmentation_rendering()
+        self.renderer.update_scene(self.data, camera=camera)
+        seg = self.renderer.render()
+        self.renderer.disable_segmentation_rendering()
+        ids, types = seg[..., 0], seg[..., 1]
+        return np.where((types == int(mujoco.mjtObj.mjOBJ_GEOM)) & (ids >= 0), ids, -1).astype(np.int64)
+
+    def drawn_geoms(self, body: str) -> list[int]:
+        """The geoms of `body` itself (not its children) that cameras draw (groups 0-2)."""
+        m = self.model
+        b = m.body(body).id
+        return [g for g in range(m.ngeom) if int(m.geom_bodyid[g]) == b and int(m.geom_group[g]) <= 2]
+
+    def vertical_extent(self, geoms: Sequence[int]) -> tuple[float, float]:
+        """Lowest and highest world z of the given geoms at the current state (corners of each
+        geom's bounding box, which for boxes is the box itself)."""
+        m, d = self.model, self.data
+        s = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=float)
+        zs = []
+        for g in geoms:
+            c, h = m.geom_aabb[g, :3], m.geom_aabb[g, 3:]
+            local = c + s * h
+            world = local @ d.geom_xmat[g].reshape(3, 3).T + d.geom_xpos[g]
+            zs.append(world[:, 2])
+        z = np.concatenate(zs)
+        return float(z.min()), float(z.max())
+
+    def subtree_geoms(self, body: str) -> list[int]:
+        """The drawn geoms of `body` and every body under it."""
+        m = self.model
+        root = m.body(body).id
+        out = []
+        for g in range(m.ngeom):
+            b = int(m.geom_bodyid[g])
+            while b not in (0, root):
+                b = int(m.body_parentid[b])
+            if b == root and int(m.geom_group[g]) <= 2:
+                out.append(g)
+        return out
 
     def rgb(self, camera: str) -> np.ndarray:
         self.renderer.update_scene(self.data, camera=camera)

@@ -307,7 +307,9 @@ def test_spatial_and_point_prompts(gyms):
     assert rp.select(seg, point=(320, 470), camera="agentview") is None
 
 
-def test_segmentation_speed(gyms):
+def test_segmentation_timings(gyms):
+    """Segments the same observation repeatedly and prints the timings (figures, not checks:
+    timing belongs to `r2g bench perception`)."""
     obs, _ = scene_of(gyms, "stack_bowls")
     for cams, label in ((["agentview"], "agentview 640x480"), (None, "fused agentview+wrist")):
         for _ in range(5):
@@ -315,8 +317,7 @@ def test_segmentation_speed(gyms):
             rp.segment_scene(obs, cams)
             RESULTS["timing_ms"].setdefault(label, []).append(1e3 * (time.perf_counter() - t))
         med = float(np.median(RESULTS["timing_ms"][label]))
-        print(f"   segmentation {label}: median {med:.0f} ms")
-        assert med < 1000
+        print(f"   segmentation {label}: median {med:.0f} ms")  # a figure, not a check: timing is bench's
 
 
 def test_list_of_observations_fuses(gyms):

@@ -145,12 +145,13 @@ def test_tracker_keeps_ids_and_names_and_follows_a_held_object(tmp_path):
     # 12 cm up and 8 cm aside, partly hidden (named differently by this observation alone)
     b, _ = _cluster([0.58, 0.1, 0.15], [0.05, 0.02, 0.05], seed=3)
     b.shape_name = "flat"
-    b.held_evidence = {"gripper_closed_on_something": True}
+    b.held_evidence = {"gripper_closed_on_something": True, "grasp_status": "holding"}
+    b.in_contact = True                      # beside the fingers, which closed on something
     t2 = rp.Tracker(str(path))
     s2 = _scene([b], plane)
     t2.update(s2, 2.0, [0.58, 0.1, 0.32])
     assert b.track_id == 0 and b.shape_name == a.shape_name and b.seen_as.endswith("flat")
-    assert b.held_evidence["moves_with_tcp"] is True and b.held
+    assert b.held_evidence["moves_with_tcp"] is True and b.held and not b.pushed
     # time going backwards = reset(): a new episode, new tracks
     c, _ = _cluster([0.5, 0.1, 0.03], [0.05, 0.05, 0.06], seed=4)
     t2.update(_scene([c], plane), 0.1, [0.3, 0.0, 0.5])

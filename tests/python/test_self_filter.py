@@ -21,6 +21,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -325,8 +326,7 @@ def test_no_robot_part_is_an_object(gym):
                 best = min(best, time.perf_counter() - t)
             TIMES[gym] = 1e3 * best
             print(f"   self-filter on agentview + wrist ({sum(map(len, clouds))} points above the table): "
-                  f"{TIMES[gym]:.0f} ms")
-            assert TIMES[gym] < 250  # about 20 ms; generous for a loaded machine
+                  f"{TIMES[gym]:.0f} ms")  # a figure, not a check: timing is the bench's
             if gym in SWINGS:  # an episode takes one control type: joints first, then a reset
                 assert rt.move_joints(np.asarray(READY) + SWINGS[gym]), robo.get_state([])['control_feedback']
                 check("arm swung aside (joint chunk)", g.observe())
@@ -364,3 +364,58 @@ def test_no_robot_part_is_an_object(gym):
             if truth is not None:
                 truth.close()
             g.stop()
+
+
+def test_an_image_older_than_the_joints_is_not_filtered_with_them(tmp_path):
+    """The robot parts that escaped the filter in a scripted stack_bowls run (a "grey plate" of
+    3295 wrist points 16 cm above the closed fingers, a "grey cylinder" of agentview points)
+    were the arm as it was seconds earlier: that observation's images were 1.8 s (agentview) and
+    3.3 s (wrist) older than its joints (the renderer lagged), and the filter poses the robot from
+    the joints. Here the same mix is made on purpose: the images of the hand 11 cm higher with
+    the joints of the fingers closed on the bowl's wall. Filtered with those joints, the old
+    fingers come out as objects; `segment_scene` leaves the stale view out (and says so), or,
+    when every view is stale, says that robot parts may be objects."""
+    if not R2G.exists():
+        pytest.skip(f"{R2G} not built")
+    import robo
+    g = rt.LiveGym(R2G, GYMS_DIR, "stack_bowls", trace_dir=tmp_path, tag="stale")
+    try:
+        assert g.ready.wait(90), "stack_bowls did not print READY"
+        g.end_episode()
+        assert rt.move_tcp((0.576, -0.129, 0.167), -1.5708), robo.get_state([])["control_feedback"]
+        high = g.observe()
+        assert rt.move_tcp((0.576, -0.129, 0.058), -1.5708, hop=0.0), robo.get_state([])["control_feedback"]
+        here = robo.get_state([])["ee_pose"]
+        assert robo.post_actions({"type": "ee_pose", "freq": "", "actions": rp.waypoints([here] * 20, 1.0)}) == 1
+        low = g.observe()
+        assert low["timestamp"] - high["image_timestamp"]["wrist"] > 0.5
+
+        def mixed(cams):
+            s = dict(low)
+            for key in ("image", "depth", "camera_extrinsics", "image_timestamp"):
+                s[key] = dict(low[key])
+                for c in cams:
+                    s[key][c] = high[key][c]
+            return s
+
+        def on_old_robot(scene) -> list:
+            """Objects that are (mostly) the robot as posed in the old images."""
+            return [o for o in scene.objects
+                    if np.mean(rp.robot_distance(o.points, high["joint"], high["gripper"][0]) < 0.01) > 0.5]
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rp.PerceptionWarning)
+            blind = rp.segment_scene(mixed(["wrist"]), tracker=None, stale_s=None)
+            old = on_old_robot(blind)
+            print("\n   filtered with the newer joints:\n" + "\n".join("      " + o.describe() for o in old))
+            assert old, "the stale wrist image should show the hand where it was"
+            scene = rp.segment_scene(mixed(["wrist"]), tracker=None)
+            assert [v.name for v in scene.views] == ["agentview"]
+            assert any("wrist" in w and "left out" in w for w in scene.warnings), scene.warnings
+            assert not on_old_robot(scene), scene.summary()
+            both = rp.segment_scene(mixed(["agentview", "wrist"]), tracker=None)
+            assert any("may be reported as objects" in w for w in both.warnings), both.warnings
+            fresh = rp.segment_scene(low, tracker=None)
+            assert not fresh.warnings and not on_old_robot(fresh)
+    finally:
+        g.stop()

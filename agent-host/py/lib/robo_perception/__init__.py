@@ -42,6 +42,7 @@ The package has one module per concept; every name is re-exported here, so ``rp.
 * ``prompts`` - parse_prompt (unknown words are a PromptError), rank_objects, select, segment;
 * ``grasps`` - Grasp, grasp_rotation, propose_grasps (steerable by region and closing direction);
 * ``placing`` - place_poses (place / pre-place / retreat TCP poses), find_markings;
+* ``relations`` - on(obj, support), inside(obj, container): the judge's relations, as seen;
 * ``tracking`` - Tracker: object identities and names across the observations of an episode;
 * ``report`` - PerceptionWarning (ambiguous prompts, implausible planes);
 * ``images`` - projection, markers, crops and PNG files;
@@ -65,9 +66,11 @@ from .report import PerceptionWarning
 from .tracking import Track, Tracker
 from .grasps import Grasp, grasp_rotation, propose_grasps
 from .placing import Marking, Placement, find_markings, place_poses
+from .relations import Relation, inside, on
 from .images import crop_image, draw_markers, encode_png, fingertip_points, project, save_png, show, visible
 from .robot import (PANDA, RobotCapsule, RobotDescription, RobotJoint, RobotShapes, capsule_distances, link_poses,
-                    robot_mask, robot_shapes, rpy_to_matrix, tcp_matrix, tcp_pose)
+                    robot_distance, robot_mask, robot_shapes, rpy_to_matrix, tcp_matrix, tcp_pose)
+from .articulation import HingedPart, PartFace, SlidingPart, fit_face, measure_hinged, measure_sliding
 
 __all__ = [
     # constants
@@ -89,11 +92,14 @@ __all__ = [
     "Grasp", "propose_grasps", "grasp_rotation",
     # placing
     "Placement", "place_poses", "Marking", "find_markings",
+    # relations as the judge means them
+    "Relation", "on", "inside",
     # images
     "project", "visible", "fingertip_points", "draw_markers", "crop_image", "save_png", "encode_png", "show",
     # the robot's own body (self-filter)
     "PANDA", "RobotDescription", "RobotJoint", "RobotCapsule", "RobotShapes", "link_poses", "tcp_matrix",
-    "tcp_pose", "robot_shapes", "capsule_distances", "robot_mask", "rpy_to_matrix",
+    "tcp_pose", "robot_shapes", "capsule_distances", "robot_mask", "robot_distance", "rpy_to_matrix",
+    "HingedPart", "SlidingPart", "PartFace", "measure_hinged", "measure_sliding", "fit_face",  # articulated parts
 ]
 
 # Private helpers stay in their modules (``from robo_perception.voxels import _euclidean_groups``).

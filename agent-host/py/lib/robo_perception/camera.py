@@ -21,6 +21,12 @@ class CameraView:
     ``ee_pose``/``gripper`` (measured, optional) let segmentation ignore the robot's own hand;
     ``joint`` (the 7 measured arm joints, optional) lets it remove the whole robot (the self-filter
     of `robo_perception.robot`). All three must be those the image was taken with.
+    ``grasp``: the gripper's own view of its fingers then (``state["control_feedback"]["grasp"]
+    ["status"]``: "holding" when they stopped short of a closing command), or None when the
+    observation does not say; `held` needs "holding" when it is known. ``image_time`` and
+    ``state_time``: when the image was taken and when the joints were measured (s, the state's
+    ``image_timestamp[name]`` and ``timestamp``), or None; `segment_scene` leaves out a view
+    whose image is much older than its joints (the robot may have moved in between).
     """
 
     name: str
@@ -31,6 +37,9 @@ class CameraView:
     ee_pose: Optional[list] = None
     gripper: Optional[float] = None
     joint: Optional[list] = None
+    grasp: Optional[str] = None
+    image_time: Optional[float] = None
+    state_time: Optional[float] = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -64,6 +73,9 @@ def views_from_state(state: Union[Mapping[str, Any], Sequence[Any]],
         images = s.get("image") or {}
         g = s.get("gripper")
         g = float(g[0]) if isinstance(g, (list, tuple)) and g else (float(g) if g is not None else None)
+        stamps = s.get("image_timestamp") or {}
+        fb = s.get("control_feedback")
+        grasp = (fb.get("grasp") or {}).get("status") if isinstance(fb, Mapping) else None
         for name, d in depth.items():
             if cameras is not None and name not in cameras:
                 continue
@@ -75,7 +87,10 @@ def views_from_state(state: Union[Mapping[str, Any], Sequence[Any]],
                                     base_from_camera=np.asarray(s["camera_extrinsics"][name], dtype=float),
                                     ee_pose=list(s["ee_pose"]) if s.get("ee_pose") is not None else None,
                                     gripper=g,
-                                    joint=[float(q) for q in s["joint"]] if s.get("joint") is not None else None))
+                                    joint=[float(q) for q in s["joint"]] if s.get("joint") is not None else None,
+                                    grasp=str(grasp) if grasp is not None else None,
+                                    image_time=float(stamps[name]) if stamps.get(name) is not None else None,
+                                    state_time=float(s["timestamp"]) if s.get("timestamp") is not None else None))
     if not views:
         raise ValueError("no camera with depth in the observation(s)")
     return views

@@ -161,15 +161,18 @@ def min_area_rect(xy: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, fl
     return centre, np.stack([u, w], axis=1), np.array([ea, eb]), _polygon_area(hull)
 
 
-def obb_in_plane(points: ArrayLike, plane: Plane, extend_to_plane: Union[bool, float] = 0.02
-                 ) -> tuple[OrientedBox, float]:
+def obb_in_plane(points: ArrayLike, plane: Plane, extend_to_plane: Union[bool, float] = 0.02,
+                 bottom: Optional[float] = None) -> tuple[OrientedBox, float]:
     """Box aligned with a support plane: minimum-area rectangle of the points' footprint in the
     plane, and their height range above it.
 
-    ``extend_to_plane``: if True, or a number and the lowest point is less than that far above
-    the plane, the box is extended down to the plane (the underside of a resting object is never
-    seen). Returns (box, fill) where fill = footprint hull area / rectangle area (about 1 for a
-    box, pi/4 for a cylinder seen from above). Axes: (long side, short side, plane normal).
+    ``bottom``: where the box's bottom is, as a height above the plane (what the object stands
+    on: 0 for the plane itself, another object's surface); it then replaces the lowest point.
+    Without it, ``extend_to_plane``: if True, or a number and the lowest point is less than that
+    far above the plane, the box is extended down to the plane (the underside of a resting
+    object is never seen). Returns (box, fill) where fill = footprint hull area / rectangle area
+    (about 1 for a box, pi/4 for a cylinder seen from above). Axes: (long side, short side, plane
+    normal).
     """
     P = np.asarray(points, dtype=float)
     B = plane.basis()
@@ -177,7 +180,9 @@ def obb_in_plane(points: ArrayLike, plane: Plane, extend_to_plane: Union[bool, f
     h = L[:, 2] + plane.offset  # height above the plane
     centre2, axes2, ext2, hull_area = min_area_rect(L[:, :2])
     hmin, hmax = float(h.min()), float(h.max())
-    if extend_to_plane is True or (extend_to_plane is not False and hmin < float(extend_to_plane)):
+    if bottom is not None:
+        hmin = min(float(bottom), hmax)
+    elif extend_to_plane is True or (extend_to_plane is not False and hmin < float(extend_to_plane)):
         hmin = 0.0
     u = B[:, 0] * axes2[0, 0] + B[:, 1] * axes2[1, 0]
     w = B[:, 0] * axes2[0, 1] + B[:, 1] * axes2[1, 1]

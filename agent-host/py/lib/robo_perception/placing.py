@@ -131,24 +131,83 @@ def place_poses(held: ObjectCluster, support: Optional[ObjectCluster], scene: Sc
 @dataclass
 class Marking:
     """A coloured mark on the support plane (tape, a painted line, a target zone): the base-frame
-    ``points`` of its pixels, their ``center``, a plane box ``obb`` (axes long, short, normal) and
-    the ``color_name``."""
+    ``points`` of its pixels (all cameras), ``center``: the centre of its rectangle ``obb`` (the
+    minimum-area rectangle of those points in the plane, on the plane; axes long, short, normal;
+    its long side ``length``, short side ``width``), the ``color_name``, and ``seen_whole``: both
+    ends of its long side were seen with table beyond them in some camera (False: a camera's
+    border, the robot or an object cuts it, so ``length`` and the centre along it are only what
+    is in view)."""
 
     points: np.ndarray
     center: np.ndarray
     obb: object
     color_name: str
+    seen_whole: bool = True
+
+    @property
+    def length(self) -> float:
+        return float(self.obb.extents[0])
+
+    @property
+    def width(self) -> float:
+        return float(self.obb.extents[1])
 
     def describe(self) -> str:
         c, e = self.center, self.obb.extents
+        cut = "" if self.seen_whole else ", cut off in view"
         return (f"{self.color_name} marking at ({c[0]:.3f}, {c[1]:.3f}, {c[2]:.3f}) "
-                f"size {e[0]:.3f}x{e[1]:.3f} m, {len(self.points)} pts")
+                f"size {e[0]:.3f}x{e[1]:.3f} m{cut}, {len(self.points)} pts")
+
+
+def _eroded(mask: np.ndarray, r: int) -> np.ndarray:
+    """Pixels of ``mask`` whose whole (2r+1)^2 neighbourhood is in it (outside the image counts
+    as not in it)."""
+    out = mask.copy()
+    for axis in (0, 1):
+        src = out.copy()
+        n = src.shape[axis]
+        for k in range(1, r + 1):
+            for sgn in (-1, 1):
+                sh = np.zeros_like(src)
+                a = [slice(None)] * 2
+                b = [slice(None)] * 2
+                if sgn > 0:
+                    a[axis], b[axis] = slice(0, n - k), slice(k, n)
+                else:
+                    a[axis], b[axis] = slice(k, n), slice(0, n - k)
+                sh[tuple(a)] = src[tuple(b)]
+                out &= sh
+    return out
+
+
+def _end_seen(p: np.ndarray, views: list, plane) -> bool:
+    """Whether some camera sees the table at base point ``p`` (on the plane): inside its image,
+    not covered, not in view of the image border."""
+    from .camera import project_points
+    for v in views:
+        uv, z = project_points(p, v.intrinsics, v.base_from_camera)
+        H, W = v.shape
+        u, w = int(round(float(uv[0, 0]))), int(round(float(uv[0, 1])))
+        if z[0] <= 0 or u < 3 or w < 3 or u >= W - 3 or w >= H - 3:
+            continue
+        d = float(np.asarray(v.depth)[w, u])
+        if np.isfinite(d) and abs(d - float(z[0])) < 0.006:
+            return True
+    return False
 
 
 def find_markings(scene: SceneSegmentation, color: str, min_points: int = 20) -> list:
     """Marks of colour ``color`` (a colour word, e.g. "yellow") lying on the support plane -
     pixels the segmentation gave to the plane whose colour has that name - grouped by 1 cm
-    proximity, largest first. Flat marks are part of the plane, never objects."""
+    proximity, largest first. Flat marks are part of the plane, never objects.
+
+    Only pixels well inside the table count: at least 2 pixels from anything that is not table
+    (an object's outline, where the colours of the object and the table blend into a third, the
+    robot, the image border) and not under an object's footprint (the lowest millimetres of its
+    sides, which the 5 mm cut gives to the plane). ``center`` is the middle of the mark's
+    rectangle, not the mean of its pixels, so a camera that sees more of one end does not pull
+    it (the same tape measured from different views agrees within a few millimetres when both
+    see all of it; ``seen_whole`` says whether they did)."""
     from .camera import depth_to_points
     from .geometry import obb_in_plane
     from .naming import _hsv_names, _rgb_to_hsv
@@ -161,6 +220,13 @@ def find_markings(scene: SceneSegmentation, color: str, min_points: int = 20) ->
     for v in scene.views:
         m = scene.plane_masks.get(v.name)
         if m is None or not m.any():
+            continue
+        m = _eroded(m, 2)
+        for o in scene.objects:
+            om = o.masks.get(v.name)
+            if om is not None and om.any():
+                m &= ~_dilated(om, 2)
+        if not m.any():
             continue
         rgb = np.asarray(v.rgb).reshape(-1, 3)[m.ravel()].astype(float) / 255.0
         hsv = _rgb_to_hsv(rgb)
@@ -176,9 +242,25 @@ def find_markings(scene: SceneSegmentation, color: str, min_points: int = 20) ->
     if not pts:
         return []
     P = np.concatenate(pts)
+    # not under an object standing on the plane (its sides' lowest millimetres)
+    for o in scene.objects:
+        if o.support != "plane":
+            continue
+        L = o.obb.to_local(P)
+        P = P[~np.all(np.abs(L[:, :2]) <= 0.5 * o.obb.extents[:2] + 0.003, axis=1)]
     out = []
     for g in _euclidean_groups(P, 0.01, min_points):
         box, _ = obb_in_plane(P[g], scene.plane)
-        out.append(Marking(points=P[g], center=P[g].mean(axis=0), obb=box, color_name=want[0]))
+        c = scene.plane.project(box.center)
+        box.center = c
+        ax = box.axes[:, 0]
+        ends = [c + s * (0.5 * box.extents[0] + 0.008) * ax for s in (-1.0, 1.0)]
+        whole = all(_end_seen(e[None], scene.views, scene.plane) for e in ends)
+        out.append(Marking(points=P[g], center=c, obb=box, color_name=want[0], seen_whole=whole))
     out.sort(key=lambda mk: -len(mk.points))
     return out
+
+
+def _dilated(mask: np.ndarray, r: int) -> np.ndarray:
+    """``mask`` grown by ``r`` pixels (a square neighbourhood)."""
+    return ~_eroded(~mask, r)
