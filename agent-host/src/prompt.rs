@@ -21,12 +21,14 @@ const INLINE: [&str; 4] = ["SKILL.md", "api/README.md", "api/PERCEPTION.md", "me
 
 /// Files a stage program reads when it needs them (`robot-skill/<path>` from its scratch folder),
 /// with what each holds. `skills/README.md` is given whole instead when skills are offered.
-pub const READABLE: [(&str, &str); 4] = [
+pub const READABLE: [(&str, &str); 6] = [
     (
         "examples/pick_object.py",
         "a whole pick with robo_perception (pre-grasp, look again, descend, close, lift, verify)",
     ),
     ("examples/place_object.py", "a whole pick and place onto another object with robo_perception.place_poses"),
+    ("examples/close_door.py", "a hinged door pushed shut round its hinge (robo_perception.measure_hinged)"),
+    ("examples/push_past_line.py", "an object pushed with the closed fingers until all of it is past a line"),
     ("skills/README.md", "the format of skill files and how to run one with robo_skills"),
     ("config/perception.json", "whether perception runs locally or through the operator's services (robo_services)"),
 ];
