@@ -307,15 +307,20 @@ def test_spatial_and_point_prompts(gyms):
     assert rp.select(seg, point=(320, 470), camera="agentview") is None
 
 
-def test_segmentation_timings(gyms):
-    """Segments the same observation repeatedly and prints the timings (figures, not checks:
+def test_segmentation_repeats_exactly(gyms):
+    """Segments the same observation repeatedly: the same objects every time (no state leaks
+    from one call into the next without a tracker). Prints the timings (figures, not checks:
     timing belongs to `r2g bench perception`)."""
     obs, _ = scene_of(gyms, "stack_bowls")
     for cams, label in ((["agentview"], "agentview 640x480"), (None, "fused agentview+wrist")):
+        first = None
         for _ in range(5):
             t = time.perf_counter()
-            rp.segment_scene(obs, cams)
+            seg = rp.segment_scene(obs, cams)
             RESULTS["timing_ms"].setdefault(label, []).append(1e3 * (time.perf_counter() - t))
+            now = [(o.color_name, o.shape_name, tuple(np.round(o.center, 6))) for o in seg.objects]
+            assert now and (first is None or now == first), (label, first, now)
+            first = now
         med = float(np.median(RESULTS["timing_ms"][label]))
         print(f"   segmentation {label}: median {med:.0f} ms")  # a figure, not a check: timing is bench's
 

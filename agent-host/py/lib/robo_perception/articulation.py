@@ -791,7 +791,13 @@ def measure_sliding(obs: Any, part: Union[None, str, ObjectCluster] = None,
     else:
         b = None
     if axis is not None:
-        ax2 = (np.asarray(axis, dtype=float) @ B)[:2]
+        a = np.asarray(axis, dtype=float).reshape(-1)
+        if a.shape != (3,) or not np.all(np.isfinite(a)):
+            raise ValueError(f"measure_sliding: axis must be 3 finite numbers (base frame), got {axis!r}")
+        ax2 = (a @ B)[:2]
+        if np.linalg.norm(ax2) < 1e-6:
+            raise ValueError(f"measure_sliding: axis {axis!r} has no direction along the table's plane "
+                             "(a drawer slides along it: give the direction it pulls out)")
         details["axis"] = "axis= given"
     elif reference is not None:
         ax2 = (reference.axis @ B)[:2]

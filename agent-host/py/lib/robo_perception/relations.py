@@ -18,7 +18,7 @@ from typing import Optional, Union
 
 import numpy as np
 
-from .segmentation import RESTING_M, SUPPORT_HIDDEN_M, SUPPORT_TOLERANCE_M, ObjectCluster, SceneSegmentation
+from .segmentation import HIDDEN_BOTTOM_M, RESTING_M, SUPPORT_HIDDEN_M, SUPPORT_TOLERANCE_M, ObjectCluster, SceneSegmentation
 
 ON_GAP_M = SUPPORT_HIDDEN_M
 """How far above the support's surface an object's lowest point seen may be for `on` (m): its
@@ -88,16 +88,22 @@ def on(obj: ObjectCluster, support: Optional[Union[ObjectCluster, str]], scene: 
 
     Holds when the object's lowest point seen is at the support's surface under it (from
     `ON_SINK_M` below to `ON_GAP_M` above it; for the table, at most `RESTING_M` above the plane,
-    the 5 mm cut plus a few millimetres) and its centre lies over the support's footprint. An
+    the 5 mm cut plus a few millimetres, or below `HIDDEN_BOTTOM_M` when nothing holds it and
+    segmentation stood it on the plane) and its centre lies over the support's footprint. An
     object beside the support, touching only its side, is not on it (its bottom is not above the
     support's lowest point); one hanging over it with room below is not on it either."""
     dist = scene.plane.distance
     held = bool(obj.held)
     if support is None or (isinstance(support, str) and support in ("table", "plane")):
         gap = float(obj.lowest_seen)
-        ok = gap <= RESTING_M
+        # as segmentation decides `support == "plane"`: down on it, or (nothing holding it)
+        # standing there with its lowest centimetre hidden by a neighbour or the fingers
+        hidden = not held and obj.support == "plane" and RESTING_M < gap < HIDDEN_BOTTOM_M
+        ok = gap <= RESTING_M or hidden
         why = (f"its lowest point seen is {1e3 * gap:.1f} mm above the table "
-               + ("(resting on it)" if ok else f"(more than {1e3 * RESTING_M:.0f} mm: not touching it)"))
+               + ("(resting on it)" if gap <= RESTING_M else
+                  "(nothing holds it up: resting on it, its bottom hidden)" if hidden else
+                  f"(more than {1e3 * RESTING_M:.0f} mm: not touching it)"))
         return Relation(holds=ok, kind="on", gap_m=gap, overlap=1.0, center_in=True, held=held,
                         why=why + (", and the hand holds it" if held else ""), details={"support": "plane"})
     if not isinstance(support, ObjectCluster):
@@ -114,7 +120,10 @@ def on(obj: ObjectCluster, support: Optional[Union[ObjectCluster, str]], scene: 
         return Relation(holds=False, kind="on", gap_m=float("nan"), overlap=overlap, center_in=center_in, held=held,
                         why=why + (", and the hand holds it" if held else ""), details=details)
     gap = float(obj.lowest_seen - surf)
-    above_base = float(obj.lowest_seen) > float(support.bottom) + RESTING_M
+    # above the support's own base: by the cut's few millimetres, or half the support's
+    # thickness for a support thinner than twice that (a 5 mm mat)
+    base_margin = min(RESTING_M, 0.5 * max(float(support.top) - float(support.bottom), 0.0))
+    above_base = float(obj.lowest_seen) > float(support.bottom) + base_margin
     ok = bool(-ON_SINK_M <= gap <= ON_GAP_M and center_in and above_base)
     if ok:
         why = f"its lowest point is {1e3 * gap:+.1f} mm from the support's surface under it, its centre over it"

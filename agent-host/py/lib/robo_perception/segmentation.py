@@ -537,6 +537,8 @@ def segment_scene(observations: Union[Mapping[str, Any], Sequence[Any], CameraVi
     for o in objects:
         _held_evidence(o, hand_view, plane, hand, robot if ignore_hand else None)
     _assign_supports(objects, plane, views)
+    for o in objects:
+        _lifted_is_off_its_support(o)
     scene_warnings = view_warnings + _plane_warnings(plane, on_plane)
     t4 = time.perf_counter()
     timings = {"backproject": 1e3 * (t1 - t0), "plane": 1e3 * (t2 - t1), "filter": 1e3 * (t3 - t2),
@@ -932,7 +934,8 @@ def _held_evidence(o: ObjectCluster, view: Optional[CameraView], plane: Plane, h
     # the fingers closed on something and stopped short of shut: the gripper says so when the
     # observation carries its state; otherwise only the measured opening is known (between open
     # and shut), which cannot tell fingers stopped by an object from fingers commanded part-open
-    if view.grasp is not None:
+    # ("unknown": the gripper has not reported yet, which says nothing either way)
+    if view.grasp is not None and view.grasp != "unknown":
         ev["gripper_closed_on_something"] = view.grasp == "holding"
     else:
         ev["gripper_closed_on_something"] = bool(-0.92 < g < 0.97)
@@ -950,6 +953,18 @@ def _held_evidence(o: ObjectCluster, view: Optional[CameraView], plane: Plane, h
     near = float(np.min(np.linalg.norm(o.points - T[:3, 3], axis=1))) if len(o.points) else math.inf
     ev["lifted_near_tcp"] = bool(o.lowest_seen > 0.012 and near < 0.04)
     o.held = bool(ev["gripper_closed_on_something"] and (ev["spans_gap"] or ev["lifted_near_tcp"]))
+
+
+def _lifted_is_off_its_support(o: ObjectCluster) -> None:
+    """An object `_held_evidence` took as held only because it is up near the TCP is not
+    held when it stands on something (another object, or the plane): raised off the table is not
+    lifted when something holds it up (a block on a plate beside the closed hand)."""
+    ev = o.held_evidence
+    if o.held and not ev.get("spans_gap") and o.support is not None \
+            and o.lowest_seen - o.bottom <= SUPPORT_TOLERANCE_M:
+        ev["lifted_near_tcp"] = False
+        ev["resting_on"] = o.support
+        o.held = False
 
 
 def _grow_masks(objects: list, views: list, h: np.ndarray, pidx: np.ndarray, pcam: np.ndarray,

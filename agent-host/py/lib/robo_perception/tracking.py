@@ -189,7 +189,7 @@ class Tracker:
             carried = last + (tcp_now - np.asarray(t.tcp, dtype=float)) \
                 if t.tcp is not None and tcp_now is not None else last
             for oi, o in enumerate(objs):
-                held_now = bool(o.held or o.held_evidence.get("gripper_closed_on_something"))
+                held_now = bool(o.held)  # this object, not the gripper holding something else
                 if not (t.held or held_now) and len(o.points) < FRAGMENT_SHARE * t.points:
                     continue  # a fragment never takes the identity of a whole object
                 hand = t.held or held_now or t.in_contact or bool(getattr(o, "in_contact", False))
