@@ -37,15 +37,18 @@ class ControlFeedback(TypedDict):
     contact: Optional[Contact]
     """The force felt during the chunk; None when it never ran (rejected, a reset)."""
     grasp: Grasp
+    """What the gripper knows about its fingers now (not tied to the last request)."""
 
 class Contact(TypedDict):
     """The magnitude of the filtered external force over a chunk, from acceptance to its end."""
 
+    start_n: float
+    """On the chunk's first tick: what was already felt (a held object's weight, a press that
+    continues); ``peak_n - start_n`` is what the chunk added."""
     peak_n: float
     mean_n: float
-    peak_waypoint: int
-    """The waypoint (0-based) the arm was heading for at the peak."""
-    """What the gripper knows about its fingers now (not tied to the last request)."""
+    peak_waypoint: Optional[int]
+    """The waypoint (0-based) the arm was heading for at the peak; None when nothing was felt."""
 
 class Grasp(TypedDict):
     """The gripper's own view of its fingers."""

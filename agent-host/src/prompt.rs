@@ -294,9 +294,16 @@ pub fn feedback_text(f: &Feedback) -> String {
             };
             let contact = &c["contact"];
             if let (Some(peak), Some(mean)) = (contact["peak_n"].as_f64(), contact["mean_n"].as_f64()) {
+                let at = match contact["peak_waypoint"].as_u64() {
+                    Some(w) => format!(" (heading for waypoint {w})"),
+                    None => String::new(),
+                };
+                let start = match contact["start_n"].as_f64() {
+                    Some(s) => format!(", {s:.2} N at its start"),
+                    None => String::new(),
+                };
                 executed.push_str(&format!(
-                    "; contact force over the chunk: peak {peak:.2} N (heading for waypoint {}), mean {mean:.2} N",
-                    contact["peak_waypoint"]
+                    "; contact force over the chunk: peak {peak:.2} N{at}, mean {mean:.2} N{start}"
                 ));
             }
             t.push_str(&format!(

@@ -6,6 +6,9 @@ close_cabinet's fixed carcass top. Live lockstep instances (started and stopped 
 
     .venv/bin/python bench/py/contact_during_chunk.py
 
+Why the push reads several newtons where sliding the block takes about 0.5 N: see the docstring
+of tests/python/test_contact_feedback.py (the fingers' friction presses the block into the table).
+
 Prints one line per case, then one JSON object.
 """
 from __future__ import annotations

@@ -10,7 +10,7 @@ use iceoryx2::service::port_factory::{event, publish_subscribe};
 
 /// Bumped whenever any payload below changes layout or meaning. Every service carries it as
 /// the attribute `r2g.schema`; a process of another build is refused when it connects.
-pub const SCHEMA_VERSION: u32 = 11;
+pub const SCHEMA_VERSION: u32 = 12;
 /// Attribute key that carries [`SCHEMA_VERSION`] on every service.
 pub const SCHEMA_ATTRIBUTE: &str = "r2g.schema";
 
@@ -252,7 +252,7 @@ impl Status {
 /// runtime → agent: progress and outcome of a [`Request`].
 #[repr(C)]
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
-#[type_name("r2g.Reply.v3")]
+#[type_name("r2g.Reply.v4")]
 pub struct Reply {
     pub id: u64,
     pub client: u64,
@@ -270,7 +270,11 @@ pub struct Reply {
     /// The contact force felt over the chunk, from acceptance to this reply: the largest and the
     /// mean magnitude of the runtime's filtered external force (`RobotState::external_force_n`),
     /// N, over `contact_ticks` ticks, and the waypoint (0-based) the arm was heading for at the
-    /// largest. All 0 for a request that never ran.
+    /// largest. `contact_start_n` is the magnitude on the chunk's first tick: what was already
+    /// felt (a held object's weight, a press that continues from the chunk before), so
+    /// `contact_peak_n - contact_start_n` is what the chunk added. All 0 for a request that
+    /// never ran.
+    pub contact_start_n: f64,
     pub contact_peak_n: f64,
     pub contact_mean_n: f64,
     pub contact_peak_waypoint: u32,
@@ -295,6 +299,7 @@ impl Reply {
             final_joint_error_rad: 0.0,
             accepted_ns: 0,
             first_motion_ns: 0,
+            contact_start_n: 0.0,
             contact_peak_n: 0.0,
             contact_mean_n: 0.0,
             contact_peak_waypoint: 0,
@@ -1090,15 +1095,15 @@ mod tests {
         assert_eq!(core::mem::size_of::<Request>(), 40 + 8 * WAYPOINT_LEN * MAX_CHUNK);
         assert_eq!(core::mem::size_of::<RobotState>(), 280 + ERROR_TEXT_LEN);
         assert_eq!(core::mem::size_of::<GripperState>(), 56 + ERROR_TEXT_LEN);
-        // Schema 11 adds the contact force over a chunk (Reply).
-        assert_eq!(core::mem::size_of::<Reply>(), 72 + REASON_LEN);
+        // Schema 11 adds the contact force over a chunk (Reply), 12 its value at the start.
+        assert_eq!(core::mem::size_of::<Reply>(), 80 + REASON_LEN);
         // Schema 10 adds the setup report (RuntimeInfo).
         assert_eq!(core::mem::size_of::<RuntimeInfo>(), 392 + CALIBRATION_LEN + SETUP_LEN);
         // Schema 9 adds steps (RequestKind::Step, Request::step_ticks, Status::Stepped) and the
         // environment's own services (EnvQuery, EnvAnswer) to 8.
         assert_eq!(core::mem::size_of::<EnvQuery>(), 24);
         assert_eq!(core::mem::size_of::<EnvAnswer>(), 32 + ENV_ANSWER_LEN);
-        assert_eq!(SCHEMA_VERSION, 11);
+        assert_eq!(SCHEMA_VERSION, 12);
     }
 }
 

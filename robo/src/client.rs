@@ -58,17 +58,20 @@ pub struct Feedback {
     pub accepted_us: Option<f64>,
     /// Submission → first measured motion, µs.
     pub first_motion_us: Option<f64>,
-    /// The force felt over the chunk (largest and mean magnitude, N; the waypoint at the
-    /// largest); None for a request that never ran (a rejection, a reset).
+    /// The force felt over the chunk (on its first tick, largest and mean magnitude, N; the
+    /// waypoint at the largest); None for a request that never ran (a rejection, a reset).
     pub contact: Option<Contact>,
 }
 
 /// [`Feedback::contact`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Contact {
+    /// On the chunk's first tick: what was already felt.
+    pub start_n: f64,
     pub peak_n: f64,
     pub mean_n: f64,
-    pub peak_waypoint: u32,
+    /// None when nothing was felt (`peak_n` 0).
+    pub peak_waypoint: Option<u32>,
 }
 
 impl Default for Feedback {
@@ -463,9 +466,11 @@ impl Client {
             accepted_us: since(reply.accepted_ns),
             first_motion_us: since(reply.first_motion_ns),
             contact: (reply.contact_ticks > 0).then_some(Contact {
+                start_n: reply.contact_start_n,
                 peak_n: reply.contact_peak_n,
                 mean_n: reply.contact_mean_n,
-                peak_waypoint: reply.contact_peak_waypoint,
+                // nothing felt at all: no waypoint to name
+                peak_waypoint: (reply.contact_peak_n > 0.0).then_some(reply.contact_peak_waypoint),
             }),
         };
         i32::from(status == Status::Executed)

@@ -324,6 +324,7 @@ fn get_state<'py>(py: Python<'py>, cameras: Option<&Bound<'py, PyAny>>, raw: boo
     let contact = match feedback.contact {
         Some(c) => {
             let d = PyDict::new(py);
+            d.set_item("start_n", c.start_n)?;
             d.set_item("peak_n", c.peak_n)?;
             d.set_item("mean_n", c.mean_n)?;
             d.set_item("peak_waypoint", c.peak_waypoint)?;

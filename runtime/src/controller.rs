@@ -65,6 +65,7 @@ struct Active {
 /// The force felt over a chunk: every tick's magnitude of the filtered external force.
 #[derive(Debug, Clone, Copy, Default)]
 struct ContactStats {
+    start_n: f64,
     peak_n: f64,
     sum_n: f64,
     ticks: u32,
@@ -78,6 +79,7 @@ impl Active {
         r.accepted_ns = self.accepted_ns;
         r.first_motion_ns = self.first_motion_ns;
         let c = &self.contact;
+        r.contact_start_n = c.start_n;
         r.contact_peak_n = c.peak_n;
         r.contact_mean_n = if c.ticks > 0 { c.sum_n / f64::from(c.ticks) } else { 0.0 };
         r.contact_peak_waypoint = c.peak_waypoint;
@@ -1006,6 +1008,9 @@ impl Controller {
         if let Some(a) = self.active.as_mut() {
             let f = self.force_n.iter().map(|v| v * v).sum::<f64>().sqrt();
             let c = &mut a.contact;
+            if c.ticks == 0 {
+                c.start_n = f;
+            }
             c.sum_n += f;
             c.ticks = c.ticks.saturating_add(1);
             if f > c.peak_n {

@@ -194,7 +194,8 @@ def test_a_5_s_joint_move_is_executed_and_the_state_says_real_arm(arm) -> None:
     # The Franka profile reports the force felt over a chunk too (the robot's own estimate):
     # franka-sim's arm moves in free space, so it is small, and it is a number in newtons.
     c = contract.fb()["contact"]
-    assert set(c) == {"peak_n", "mean_n", "peak_waypoint"} and 0.0 <= c["mean_n"] <= c["peak_n"] < 50.0, c
+    assert set(c) == {"start_n", "peak_n", "mean_n", "peak_waypoint"}, c
+    assert 0.0 <= c["start_n"] <= c["peak_n"] and 0.0 <= c["mean_n"] <= c["peak_n"] < 50.0, c
 
 
 def control_pid(inst) -> int:
