@@ -10,7 +10,7 @@ that edge. This program aims a further 2 cm beyond that.
 
 Stages: find the object (`select`) and the line (`find_markings`) -> the push direction: across
 the line (its short side), from the object towards it -> close the fingers -> over a start point
-behind the object, down to pushing height (fingertips about 1 cm above the table, the closed
+behind the object, down to pushing height (fingertips about 1.6 cm above the table, the closed
 finger pair square to the push) -> push in 4 mm steps until the object's centre should be at the
 goal -> back off, look again; push again from where it now is if it is short (at most 3 pushes)
 -> back off, up, let the scene settle. Ends with ``RESULT past=<bool> beyond_m=<m>`` (how far the
@@ -50,8 +50,15 @@ def move(poses, gripper, label):
             fb = get_state([])["control_feedback"]
             print(f"{label}: {fb['status']} after {fb['executed']} waypoints: {fb['reason']}")
             return False
-    print(f"{label}: ok ({len(poses)} waypoints)")
+    print(f"{label}: ok ({len(poses)} waypoints, felt {felt_n():.2f} N)")
     return True
+
+
+def felt_n():
+    """What the last chunk added to the force on the robot, N (its contact peak over its start):
+    0 for a push that never touched anything."""
+    c = get_state([])["control_feedback"].get("contact")
+    return 0.0 if not c else max(0.0, c["peak_n"] - c["start_n"])
 
 
 def path_to(goal, max_m=0.03):
@@ -127,6 +134,8 @@ def push_past_line(prompt="green block", color="yellow", tries=3):
               and move(path_to([start[0], start[1], PUSH_Z + 0.03, *rot], max_m=0.02), closed, "down behind the object")
               and move(path_to([start[0], start[1], PUSH_Z, *rot], max_m=0.005), closed, "to pushing height")
               and move(path_to([end[0], end[1], PUSH_Z, *rot], max_m=STEP_M), closed, "push"))
+        if ok and felt_n() < 0.2:
+            print("the push felt nothing: the fingers passed beside or above the object")
         # straight up off the table first (also after a stop), then back along the push, then look
         here = get_state([])["ee_pose"]
         move(path_to([here[0], here[1], PUSH_Z + 0.035, *rot], max_m=0.005), closed, "up off the table")

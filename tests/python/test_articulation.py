@@ -13,6 +13,7 @@ Run:  .venv/bin/python -m pytest tests/python/test_articulation.py -q
 from __future__ import annotations
 
 import json
+import re
 import math
 import subprocess
 import sys
@@ -278,3 +279,5 @@ def test_push_example_pushes_the_block_past_the_line_in_the_sandbox(tmp_path):
     verdict = g.last("eval")
     assert verdict["success"], (verdict["checks"], r["stdout"][-2000:], r["stderr"][-1500:])
     assert r["violation"] is None and "RESULT past=True" in r["stdout"]
+    felt = [float(m) for m in re.findall(r"^push: ok \(\d+ waypoints, felt ([0-9.]+) N\)", r["stdout"], re.M)]
+    assert felt and felt[0] > 0.2, r["stdout"][-2000:]  # the push touched the block, and said so
