@@ -21,12 +21,12 @@ export PYO3_BUILD_EXTENSION_MODULE := 1
 export PYO3_ENVIRONMENT_SIGNATURE = $(shell $(PYO3_PYTHON) -c 'import sys; v = sys.version_info; \
   print(f"{sys.implementation.name}-{v.major}.{v.minor}-{64 if sys.maxsize > 2**32 else 32}bit")' 2>/dev/null)
 
-.PHONY: demo test deps venv build robo gym-wheel bench-tick clean
+.PHONY: demo test deps venv build robo gym-wheel blender-env bench-tick clean
 
-demo: robo
+demo: robo blender-env
 	scripts/demo.sh
 
-test: robo gym-wheel
+test: robo gym-wheel blender-env
 	scripts/test.sh
 
 deps: $(STAMPS)/deps
@@ -55,8 +55,13 @@ robo: build
 gym-wheel: robo
 	scripts/gym-wheel.sh
 
+# Blender as a Python module in .venv-blender (`r2g blender`, `r2g compare`): about 374 MB to
+# download once; the script keeps its own stamp and returns at once when up to date.
+blender-env: $(STAMPS)/deps
+	scripts/setup-blender.sh
+
 bench-tick: build
 	target/release/r2g bench tick --seconds 10
 
 clean:
-	rm -rf target $(VENV) $(STAMPS) demo-out
+	rm -rf target $(VENV) .venv-blender $(STAMPS) demo-out

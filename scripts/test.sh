@@ -12,7 +12,7 @@ fail=0
 echo "== cargo test (unit and multi-process tests)"
 timeout 1800 cargo test --release --workspace --locked --no-fail-fast -- --test-threads=2 || fail=1
 echo "== pyflakes"
-.venv/bin/python -m pyflakes demo tests/python tests/hostile bench agent-host/py robot-skill/examples fci/franka-sim robots/*.py rig/py camera-host/py gym-env fleet real2sim/py real2sim/tests || fail=1
+.venv/bin/python -m pyflakes demo tests/python tests/hostile bench agent-host/py robot-skill/examples fci/franka-sim robots/*.py rig/py camera-host/py gym-env fleet real2sim/py real2sim/tests real2sim/blender || fail=1
 echo "== pytest (robo against live instances)"
 timeout 1200 .venv/bin/python -m pytest -q tests/python || fail=1
 exit $fail

@@ -9,7 +9,12 @@ use ipc_schema::process;
 use ipc_schema::Mode;
 use runtime::launch::{self, Instance, UpOptions};
 
+mod blender_cmd;
+mod compare_cmd;
+mod judge_cmd;
 mod kin;
+mod reconstruct_cmd;
+mod render_cmd;
 mod service;
 mod skills_cmd;
 
@@ -160,7 +165,8 @@ enum Cmd {
         instance: String,
     },
     /// Stop an instance that `r2g up` runs (SIGTERM to that `r2g up`, by the pid it wrote to
-    /// <run folder>/up.pid) and return once it has exited: its processes are stopped and the last
+    /// <run folder>/up.pid: $R2G_RUN_DIR/NAME, else /run/r2g/NAME when it exists, else
+    /// $XDG_RUNTIME_DIR/r2g/NAME, else /tmp/r2g-<uid>/NAME) and return once it has exited: its processes are stopped and the last
     /// episode's verdict is written (with --trace-dir). Exits 0 when it stopped, 1 when no such
     /// instance runs here or it did not stop in time (nothing else is signalled).
     Down {
@@ -259,6 +265,28 @@ enum Cmd {
         #[arg(long)]
         keep_trace: bool,
     },
+    /// A gym's compiled scene in Blender (.blend): every drawn geom, the cameras and lights, and
+    /// every body's pose keyframed from a native trace (default: the demonstration replayed in
+    /// lockstep); with --render, Cycles (CPU) images of chosen instants and cameras.
+    Blender(blender_cmd::BlenderArgs),
+    /// A gym rendered by MuJoCo into a BOP scene folder (scene_camera.json, rgb/, depth/,
+    /// mask_visib/, scene_gt.json, joints.json): the scene at rest, or a native trace's states
+    /// at given times, from the scene's cameras or those of a BOP scene_camera.json.
+    Render(render_cmd::RenderArgs),
+    /// A gym folder from RGB-D frames in the BOP scene layout: the robot's pixels removed by
+    /// forward kinematics, the table and objects fitted (primitives, compounds, convex hulls),
+    /// settled by physics, and checked by rendering it from every source camera (figures in
+    /// <out>/reconstruction.json). Written whole or not at all; ends with one JSON line.
+    Reconstruct(reconstruct_cmd::ReconstructArgs),
+    /// The same instants drawn by MuJoCo (`r2g render`) and Blender (Cycles), and the source
+    /// frames when given, side by side in one PNG sheet, with per-object silhouette IoU
+    /// (`<sheet>.json` beside it, both renders in `<sheet>.renders/`).
+    Compare(compare_cmd::CompareArgs),
+    /// Grade a gym with a model and our rubric (after the paper's appendix): source frames,
+    /// MuJoCo and Blender images of the same instants, the demonstration and the native verdict
+    /// go to the endpoint; scores, justifications, model and tokens go to <out>/judge.json.
+    /// Ends with one JSON line. Scores from `--llm scripted` test the mechanics only.
+    Judge(judge_cmd::JudgeArgs),
     /// Kinematics over JSON lines: reads one request per stdin line, answers one line each.
     Kin {
         #[command(subcommand)]
@@ -868,6 +896,11 @@ fn main() {
         })(
         ),
         Cmd::Validate { gym, seed, out, keep_trace } => validate(&gym, seed, out, keep_trace),
+        Cmd::Blender(a) => blender_cmd::run(a),
+        Cmd::Render(a) => render_cmd::run(a),
+        Cmd::Reconstruct(a) => reconstruct_cmd::run(a),
+        Cmd::Compare(a) => compare_cmd::run(a),
+        Cmd::Judge(a) => judge_cmd::run(a),
         Cmd::Bench { which: BenchCmd::Sim { gyms, frames } } => bench::sim::run(&gyms, frames).map(|_| 0),
         Cmd::Bench { which: BenchCmd::Skills { gyms, seeds, first_seed, perturb, jobs, out } } => {
             let o = bench::skills::Options { gyms, seeds, first_seed, perturb: perturb.to_string(), jobs, out };

@@ -418,6 +418,7 @@ mod tests {
                     joints: Vec::new(),
                     tcp_m: [0.0; 3],
                     finger_m: if t_s < 1.0 { 0.04 } else { 0.0 },
+                    arm_rad: Vec::new(),
                     contacts: Vec::new(),
                     penetration_m: 0.0,
                     penetration_pair: [0, 0],

@@ -7,6 +7,7 @@ pub mod events;
 pub mod gym;
 pub mod h5;
 pub mod import;
+pub mod judge;
 pub mod record;
 pub mod replay;
 pub mod resample;

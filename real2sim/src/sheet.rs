@@ -29,8 +29,8 @@ pub fn first_frame(scene_path: &Path, camera: &str) -> Result<(Vec<u8>, usize, u
     Ok((rgb.to_vec(), w as usize, h as usize))
 }
 
-/// Box-filters an RGB image down to the tile size.
-fn shrink(rgb: &[u8], w: usize, h: usize) -> Vec<u8> {
+/// Box-filters an RGB image down (or up, by repeating pixels) to the tile size.
+pub fn shrink(rgb: &[u8], w: usize, h: usize) -> Vec<u8> {
     let (tw, th) = TILE;
     let mut out = vec![0u8; tw * th * 3];
     for ty in 0..th {
@@ -56,14 +56,27 @@ fn shrink(rgb: &[u8], w: usize, h: usize) -> Vec<u8> {
 
 /// Tiles the agentview starts of `scenes` (at most `columns` a row) into a PNG at `out`.
 pub fn write(scenes: &[&Path], columns: usize, out: &Path) -> Result<usize> {
+    let mut tiles = Vec::with_capacity(scenes.len());
+    for scene in scenes {
+        let (rgb, w, h) = first_frame(scene, "agentview")?;
+        tiles.push(shrink(&rgb, w, h));
+    }
+    write_tiles(&tiles, columns, out)?;
+    Ok(scenes.len())
+}
+
+/// Writes tiles of [`TILE`] size (RGB, as [`shrink`] makes them), `columns` a row, left to right
+/// and top to bottom, into one PNG at `out` (written whole, then renamed).
+pub fn write_tiles(tiles: &[Vec<u8>], columns: usize, out: &Path) -> Result<()> {
     let (tw, th) = TILE;
-    let cols = columns.max(1).min(scenes.len().max(1));
-    let rows = scenes.len().div_ceil(cols).max(1);
+    let cols = columns.max(1).min(tiles.len().max(1));
+    let rows = tiles.len().div_ceil(cols).max(1);
     let (sw, sh) = (cols * tw, rows * th);
     let mut sheet = vec![32u8; sw * sh * 3];
-    for (i, scene) in scenes.iter().enumerate() {
-        let (rgb, w, h) = first_frame(scene, "agentview")?;
-        let tile = shrink(&rgb, w, h);
+    for (i, tile) in tiles.iter().enumerate() {
+        if tile.len() != tw * th * 3 {
+            return Err(Error::Episode(anyhow::anyhow!("tile {i} is not {tw}x{th} RGB")));
+        }
         let (ox, oy) = ((i % cols) * tw, (i / cols) * th);
         for y in 0..th {
             let dst = ((oy + y) * sw + ox) * 3;
@@ -79,5 +92,5 @@ pub fn write(scenes: &[&Path], columns: usize, out: &Path) -> Result<usize> {
         w.write_image_data(&sheet).map_err(|e| Error::Episode(e.into()))?;
     }
     lockstep::demo::write_atomic(out, &bytes)?;
-    Ok(scenes.len())
+    Ok(())
 }

@@ -1,5 +1,6 @@
 #![doc = include_str!("../README.md")]
 
+pub mod bop;
 pub mod env_service;
 pub mod mjcf;
 pub mod placement;

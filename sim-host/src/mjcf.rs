@@ -161,6 +161,36 @@ fn camera_xyaxes(c: &CameraSpec, default_up: [f64; 3]) -> Option<String> {
     Some(format!("{} {}", f3(right), f3(up)))
 }
 
+/// Width and height of one pixel of the notional sensor MuJoCo's intrinsics are expressed on,
+/// m. Only ratios reach the image, so any positive size gives the same projection.
+const PIXEL_PITCH_M: f64 = 1e-5;
+
+/// A camera's lens attributes: `fovy` (degrees), or, for a camera given with pinhole
+/// intrinsics, MuJoCo's `focalpixel`, `principalpixel`, `sensorsize` and `resolution`.
+///
+/// MuJoCo's `principalpixel` is the principal point's offset from the image centre, and a
+/// positive offset moves the projection of every point up and left (checked by rendering, see
+/// `tests/intrinsics.rs`): in the pixel-index convention, where the image centre is
+/// `((w - 1) / 2, (h - 1) / 2)`, the offset for a principal point `(cx, cy)` is
+/// `((w - 1) / 2 - cx, (h - 1) / 2 - cy)`.
+fn lens(c: &CameraSpec) -> String {
+    match c.given_intrinsics() {
+        None => format!("fovy=\"{}\"", c.fovy_deg.unwrap_or(crate::scene::DEFAULT_FOVY_DEG)),
+        Some((fx, fy, cx, cy)) => {
+            let (w, h) = (c.width as f64, c.height as f64);
+            format!(
+                "focalpixel=\"{fx} {fy}\" principalpixel=\"{} {}\" sensorsize=\"{} {}\" resolution=\"{} {}\"",
+                (w - 1.0) / 2.0 - cx,
+                (h - 1.0) / 2.0 - cy,
+                w * PIXEL_PITCH_M,
+                h * PIXEL_PITCH_M,
+                c.width,
+                c.height
+            )
+        }
+    }
+}
+
 /// Rotation matrix of URDF roll-pitch-yaw (fixed axes x, y, z): Rz(yaw)·Ry(pitch)·Rx(roll).
 fn rpy_matrix(rpy: [f64; 3]) -> [[f64; 3]; 3] {
     let (sr, cr) = rpy[0].sin_cos();
@@ -339,10 +369,10 @@ impl Writer<'_> {
                 camera_xyaxes(cam, [1.0, 0.0, 0.0]).ok_or_else(|| MjcfError::BadCamera { camera: cam.name.clone() })?;
             writeln!(
                 self.out,
-                "{indent}<camera name=\"{}\" pos=\"{}\" xyaxes=\"{xy}\" fovy=\"{}\"/>",
+                "{indent}<camera name=\"{}\" pos=\"{}\" xyaxes=\"{xy}\" {}/>",
                 cam.name,
                 f3(cam.position_m),
-                cam.fovy_deg
+                lens(cam)
             )
             .ok();
         }
@@ -473,14 +503,7 @@ pub fn compile(scene: &Scene, urdf_xml: &str, model: &controllers::RobotModel) -
     }
     for c in scene.cameras.iter().filter(|c| c.link.is_none()) {
         let xy = camera_xyaxes(c, [0.0, 0.0, 1.0]).ok_or_else(|| MjcfError::BadCamera { camera: c.name.clone() })?;
-        writeln!(
-            o,
-            "    <camera name=\"{}\" pos=\"{}\" xyaxes=\"{xy}\" fovy=\"{}\"/>",
-            c.name,
-            f3(c.position_m),
-            c.fovy_deg
-        )
-        .ok();
+        writeln!(o, "    <camera name=\"{}\" pos=\"{}\" xyaxes=\"{xy}\" {}/>", c.name, f3(c.position_m), lens(c)).ok();
     }
     for ob in &scene.objects {
         writeln!(o, "    <body name=\"{}\" pos=\"{}\" quat=\"{}\">", ob.name, f3(ob.position_m), f4(ob.quat_wxyz)).ok();

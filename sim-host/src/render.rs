@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use controllers::math;
 use ipc_schema::{CameraFrame, FrameHeader, Pose, Qos, Services};
-use mujoco_rs::mujoco_c::{mj_camlight, mj_kinematics};
+use mujoco_rs::mujoco_c::{mj_camlight, mj_kinematics, mjtObj, mjtRndFlag};
 use mujoco_rs::prelude::*;
 use mujoco_rs::renderer::MjRenderer;
 
@@ -37,8 +37,15 @@ pub struct RenderConfig {
 /// count. MuJoCo's frustum is centred on the image, whose centre lies between pixels
 /// `w/2 - 1` and `w/2`: the principal point is `((w - 1) / 2, (h - 1) / 2)`. (Counting from
 /// pixel edges, `w / 2`, put every back-projected ray half a pixel off.)
+///
+/// A camera given with `fx, fy, cx, cy` reports exactly those: the MJCF carries them to MuJoCo
+/// ([`crate::mjcf`]), whose image then has that focal length and principal point.
 pub fn intrinsics(spec: &CameraSpec) -> (f64, f64, f64, f64) {
-    let f = 0.5 * spec.height as f64 / (0.5 * spec.fovy_deg.to_radians()).tan();
+    if let Some(k) = spec.given_intrinsics() {
+        return k;
+    }
+    let fovy = spec.fovy_deg.unwrap_or(crate::scene::DEFAULT_FOVY_DEG);
+    let f = 0.5 * spec.height as f64 / (0.5 * fovy.to_radians()).tan();
     (f, f, (spec.width as f64 - 1.0) / 2.0, (spec.height as f64 - 1.0) / 2.0)
 }
 
@@ -53,6 +60,10 @@ pub fn intrinsics(spec: &CameraSpec) -> (f64, f64, f64, f64) {
 /// high, the wrist's 0.4-0.7 mm low). Without multisampling every depth is the surface at the
 /// pixel's centre, whichever GL driver renders.
 pub struct Cameras {
+    /// Geom-id images (None until [`Cameras::segment`] is first asked).
+    segmenter: Option<Segmenter>,
+    width: u32,
+    height: u32,
     renderer: MjRenderer,
     /// Depth, single-sampled (None: no depth wanted).
     depth: Option<MjRenderer>,
@@ -95,7 +106,21 @@ impl Cameras {
             None
         };
         let data = MjData::new(model.clone());
-        Ok(Self { renderer, depth, data, model })
+        Ok(Self { segmenter: None, width, height, renderer, depth, data, model })
+    }
+
+    /// Which geom each pixel of camera `cam_id` shows (row-major, top row first): the geom's
+    /// id in the model, or -1 where no geom is drawn (the sky). The geoms are those the RGB image
+    /// draws (groups 0-2), each pixel decided at its centre without multisampling, so a mask is
+    /// exactly where the depth image holds that geom's surface. Uses MuJoCo's segmentation
+    /// rendering (`mjRND_SEGMENT` with `mjRND_IDCOLOR`: every geom drawn flat in a colour that
+    /// encodes its index in the visual scene), with a GL context of its own.
+    pub fn segment(&mut self, cam_id: usize) -> anyhow::Result<Vec<i32>> {
+        if self.segmenter.is_none() {
+            self.segmenter = Some(Segmenter::new(&self.model, &mut self.data, self.width, self.height)?);
+        }
+        let Some(seg) = self.segmenter.as_mut() else { unreachable!("created above") };
+        seg.render(&mut self.data, cam_id)
     }
 
     /// Poses the scene at `qpos` (from a model of the same size).
@@ -148,6 +173,103 @@ impl Cameras {
         // MuJoCo's camera frame has y up and z backwards; the optical frame has y down and z
         // forwards: a half turn about x.
         math::compose((p, math::quat_from_mat(&m)), ([0.0; 3], [1.0, 0.0, 0.0, 0.0]))
+    }
+}
+
+/// MuJoCo's segmentation rendering. The `MjRenderer` of mujoco-rs keeps its scene's flags to
+/// itself, so this draws with a scene and a rendering context of its own, in the GL context of a
+/// renderer that shows nothing (every geom group hidden) and is only asked to render to make
+/// that GL context current.
+struct Segmenter {
+    /// Dropped (in `Drop`) while `gl`'s context is current.
+    context: Option<MjrContext>,
+    scene: MjvScene,
+    option: MjvOption,
+    gl: MjRenderer,
+    pixels: Vec<u8>,
+    width: usize,
+    height: usize,
+}
+
+impl Segmenter {
+    fn new(model: &MjModel, data: &mut MjData<Arc<MjModel>>, width: u32, height: u32) -> anyhow::Result<Self> {
+        // Single-sampled: a multisampled buffer is resolved by averaging, which mixes the colours
+        // (the ids) of neighbouring geoms along every edge.
+        let mut single = MjModel::clone(model);
+        single.vis_mut().quality.offsamples = 0;
+        let nothing = MjvOption { geomgroup: [0; 6], ..Default::default() };
+        let mut gl = MjRenderer::builder()
+            .width(width)
+            .height(height)
+            .rgb(true)
+            .depth(false)
+            .opts(nothing)
+            .build(&single)
+            .map_err(egl_error)?;
+        gl.sync_data(data).map_err(|e| anyhow::anyhow!("segmentation sync: {e}"))?;
+        gl.render().map_err(|e| anyhow::anyhow!("segmentation context: {e}"))?;
+        // SAFETY: `gl.render()` just made its GL context current on this thread.
+        let mut context = unsafe { MjrContext::new(&single) };
+        context.offscreen();
+        let ngeom = single.ffi().ngeom as usize;
+        let scene = MjvScene::new(&single, ngeom + 100);
+        let (w, h) = (width as usize, height as usize);
+        Ok(Self {
+            context: Some(context),
+            scene,
+            option: MjvOption::default(),
+            gl,
+            pixels: vec![0; w * h * 3],
+            width: w,
+            height: h,
+        })
+    }
+
+    fn render(&mut self, data: &mut MjData<Arc<MjModel>>, cam_id: usize) -> anyhow::Result<Vec<i32>> {
+        self.gl.render().map_err(|e| anyhow::anyhow!("segmentation context: {e}"))?;
+        let Some(context) = self.context.as_mut() else { anyhow::bail!("segmentation context is gone") };
+        let mut camera = MjvCamera::new_fixed(cam_id);
+        self.scene.update(data, &self.option, &MjvPerturb::default(), &mut camera);
+        // SAFETY: plain flags of the scene this struct owns.
+        unsafe {
+            let f = self.scene.ffi_mut();
+            f.flags[mjtRndFlag::mjRND_SEGMENT as usize] = 1;
+            f.flags[mjtRndFlag::mjRND_IDCOLOR as usize] = 1;
+        }
+        // Other contexts of this GL context may have bound their buffers since.
+        context.offscreen();
+        let vp = MjrRectangle::new(0, 0, self.width as i32, self.height as i32);
+        self.scene.render(&vp, context);
+        context
+            .read_pixels(Some(&mut self.pixels), None, &vp)
+            .map_err(|e| anyhow::anyhow!("segmentation read: {e:?}"))?;
+        let geoms = self.scene.geoms();
+        let (w, h) = (self.width, self.height);
+        let mut out = vec![-1i32; w * h];
+        // OpenGL's rows run bottom-up.
+        for row in 0..h {
+            let src = &self.pixels[(h - 1 - row) * w * 3..(h - row) * w * 3];
+            for (col, px) in src.chunks_exact(3).enumerate() {
+                let v = px[0] as usize | (px[1] as usize) << 8 | (px[2] as usize) << 16;
+                if v == 0 {
+                    continue;
+                }
+                if let Some(g) = geoms.get(v - 1) {
+                    if g.objtype == mjtObj::mjOBJ_GEOM as i32 {
+                        out[row * w + col] = g.objid;
+                    }
+                }
+            }
+        }
+        Ok(out)
+    }
+}
+
+impl Drop for Segmenter {
+    fn drop(&mut self) {
+        // Free the context's GL objects in its own GL context, not whichever is current.
+        let _ = self.gl.render();
+        self.context.take();
     }
 }
 

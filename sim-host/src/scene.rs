@@ -128,8 +128,20 @@ pub struct CameraSpec {
     /// Image "up" hint, same frame; default world z, or link x for mounted cameras.
     #[serde(default)]
     pub up: Option<[f64; 3]>,
-    #[serde(default = "default_fovy")]
-    pub fovy_deg: f64,
+    /// Vertical field of view, degrees (default 45; not together with `fx, fy, cx, cy`).
+    #[serde(default)]
+    pub fovy_deg: Option<f64>,
+    /// Pinhole intrinsics in pixels, all four or none (then `fovy_deg` must not be given):
+    /// focal lengths and the principal point, pixel-index convention (the centre of pixel
+    /// `(u, v)` is the point `(u, v)`), as [`crate::render::intrinsics`] reports them.
+    #[serde(default)]
+    pub fx: Option<f64>,
+    #[serde(default)]
+    pub fy: Option<f64>,
+    #[serde(default)]
+    pub cx: Option<f64>,
+    #[serde(default)]
+    pub cy: Option<f64>,
     #[serde(default = "default_width")]
     pub width: u32,
     #[serde(default = "default_height")]
@@ -149,7 +161,11 @@ fn default_cameras() -> Vec<CameraSpec> {
             position_m: [1.4, 0.0, 0.95],
             look_at_m: [0.3, 0.0, 0.18],
             up: None,
-            fovy_deg: 50.0,
+            fovy_deg: Some(50.0),
+            fx: None,
+            fy: None,
+            cx: None,
+            cy: None,
             width: 640,
             height: 480,
             depth: true,
@@ -160,7 +176,11 @@ fn default_cameras() -> Vec<CameraSpec> {
             position_m: [-0.1, 0.0, 0.0],
             look_at_m: [0.05, 0.0, 0.25],
             up: Some([-1.0, 0.0, 0.0]),
-            fovy_deg: 60.0,
+            fovy_deg: Some(60.0),
+            fx: None,
+            fy: None,
+            cx: None,
+            cy: None,
             width: 640,
             height: 480,
             depth: true,
@@ -168,8 +188,22 @@ fn default_cameras() -> Vec<CameraSpec> {
     ]
 }
 
-fn default_fovy() -> f64 {
-    45.0
+/// The vertical field of view of a camera given without `fovy_deg` and without intrinsics.
+pub const DEFAULT_FOVY_DEG: f64 = 45.0;
+
+impl CameraSpec {
+    /// The pinhole intrinsics given in the spec (`fx, fy, cx, cy`), when all four are.
+    pub fn given_intrinsics(&self) -> Option<(f64, f64, f64, f64)> {
+        Some((self.fx?, self.fy?, self.cx?, self.cy?))
+    }
+
+    /// The vertical field of view, degrees: `fovy_deg` (default 45), or the one `fy` gives.
+    pub fn vertical_fov_deg(&self) -> f64 {
+        match self.given_intrinsics() {
+            Some((_, fy, _, _)) => (2.0 * (0.5 * self.height as f64 / fy).atan()).to_degrees(),
+            None => self.fovy_deg.unwrap_or(DEFAULT_FOVY_DEG),
+        }
+    }
 }
 fn default_width() -> u32 {
     640
@@ -797,9 +831,12 @@ impl Scene {
                     ipc_schema::MAX_IMAGE_HEIGHT
                 ));
             }
-            if !(c.fovy_deg > 1.0 && c.fovy_deg < 170.0) {
-                return Err(format!("{at}: fovy_deg = {}: accepted is a number in (1, 170)", c.fovy_deg));
+            if let Some(f) = c.fovy_deg {
+                if !(f > 1.0 && f < 170.0) {
+                    return Err(format!("{at}: fovy_deg = {f}: accepted is a number in (1, 170)"));
+                }
             }
+            check_intrinsics(&at, c)?;
             let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
             if !finite(&c.position_m) || !finite(&c.look_at_m) || !c.up.is_none_or(|u| finite(&u)) {
                 return Err(format!("{at}: position_m, look_at_m and up: accepted are finite numbers"));
@@ -952,6 +989,45 @@ impl Scene {
         }
         Ok(())
     }
+}
+
+/// `fx, fy, cx, cy`: all four or none, not with `fovy_deg`, focal lengths positive, the
+/// principal point on the image (pixel-index convention: from 0 to width - 1 and height - 1).
+pub(crate) fn check_intrinsics(at: &str, c: &CameraSpec) -> Result<(), String> {
+    let fields = [("fx", c.fx), ("fy", c.fy), ("cx", c.cx), ("cy", c.cy)];
+    let given: Vec<&str> = fields.iter().filter(|(_, v)| v.is_some()).map(|(n, _)| *n).collect();
+    if given.is_empty() {
+        return Ok(());
+    }
+    if given.len() != 4 {
+        let missing: Vec<&str> = fields.iter().filter(|(_, v)| v.is_none()).map(|(n, _)| *n).collect();
+        return Err(format!(
+            "{at}: intrinsics need all four of fx, fy, cx, cy or none; given {}, missing {}",
+            given.join(", "),
+            missing.join(", ")
+        ));
+    }
+    if c.fovy_deg.is_some() {
+        return Err(format!(
+            "{at}: fovy_deg and fx, fy, cx, cy both given; accepted is one of them (fy sets the field of view)"
+        ));
+    }
+    for (name, v) in &fields[..2] {
+        let v = v.unwrap_or(f64::NAN);
+        if !(v.is_finite() && v > 0.0) {
+            return Err(format!("{at}: {name} = {v}: accepted is a positive number of pixels"));
+        }
+    }
+    for (name, v, size) in [("cx", c.cx, c.width), ("cy", c.cy, c.height)] {
+        let v = v.unwrap_or(f64::NAN);
+        let hi = size as f64 - 1.0;
+        if !(v.is_finite() && (0.0..=hi).contains(&v)) {
+            return Err(format!(
+                "{at}: {name} = {v}: accepted is a pixel coordinate in [0, {hi}] (pixel centres count from 0)"
+            ));
+        }
+    }
+    Ok(())
 }
 
 fn check_name(field: &str, name: &str) -> Result<(), String> {

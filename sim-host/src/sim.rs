@@ -89,7 +89,12 @@ fn id(model: &MjModel, kind: MjtObjBase, name: &str) -> Result<usize, SimError> 
 
 impl Sim {
     pub fn load(scene_path: &std::path::Path) -> Result<Self, SimError> {
-        let scene = Scene::load(scene_path)?;
+        Self::from_scene(Scene::load(scene_path)?)
+    }
+
+    /// Compiles a scene already loaded (and checked: [`Scene::load`]); `r2g render` uses it to
+    /// compile a gym with the cameras of a BOP `scene_camera.json` in place of its own.
+    pub fn from_scene(scene: Scene) -> Result<Self, SimError> {
         let urdf = std::fs::read_to_string(&scene.robot.urdf)
             .map_err(|source| crate::scene::SceneError::Urdf { path: scene.robot.urdf.clone(), source })?;
         let robot = RobotModel::from_urdf_str(&urdf, &scene.robot.tcp_link, scene.robot.profile())?;
@@ -473,10 +478,86 @@ impl Sim {
             joints,
             tcp_m: [site[0], site[1], site[2]],
             finger_m: l.finger_qpos.first().map(|&a| qpos[a]).unwrap_or(0.0),
+            arm_rad: l.arm_qpos.iter().map(|&a| qpos[a]).collect(),
             contacts: pairs,
             penetration_m: pen,
             penetration_pair: pen_pair,
         }
+    }
+
+    /// Poses the scene as a trace sample of this scene recorded it: free objects, fixture
+    /// joints, the arm's joints and the fingers (velocities zero), then forward kinematics, so
+    /// bodies, sites and cameras stand where they stood at `sample.t_s`. Welded objects never
+    /// move and keep their pose. A sample without the arm's angles (a trace written before they
+    /// were recorded) or of another scene's layout is refused.
+    pub fn set_state_from_sample(&mut self, sample: &Sample) -> Result<(), String> {
+        let l = self.layout.clone();
+        if sample.objects.len() != l.objects.len() || sample.joints.len() != l.fixture_joints.len() {
+            return Err(format!(
+                "the trace sample at t = {} s holds {} objects and {} fixture joints; scene '{}' has {} and {}",
+                sample.t_s,
+                sample.objects.len(),
+                sample.joints.len(),
+                self.scene.name,
+                l.objects.len(),
+                l.fixture_joints.len()
+            ));
+        }
+        if sample.arm_rad.len() != N_JOINTS {
+            return Err(format!(
+                "the trace sample at t = {} s has {} arm joint angles (arm_rad), {N_JOINTS} are needed: \
+                 traces written before the arm's angles were recorded cannot pose the arm; record it again",
+                sample.t_s,
+                sample.arm_rad.len()
+            ));
+        }
+        let all = sample.objects.iter().flatten().chain(&sample.joints).chain(&sample.arm_rad);
+        if !all.chain([&sample.finger_m]).all(|v| v.is_finite()) {
+            return Err(format!("the trace sample at t = {} s holds a number that is not finite", sample.t_s));
+        }
+        let natives: Vec<f64> = self
+            .scene
+            .fixtures
+            .iter()
+            .filter_map(|f| f.joint.as_ref())
+            .zip(&sample.joints)
+            .map(|(j, &v)| match j.kind {
+                crate::scene::JointKind::Slide => v,
+                crate::scene::JointKind::Hinge => v.to_radians(),
+            })
+            .collect();
+        // SAFETY: the live model/data pair of this Sim.
+        unsafe { mj_resetData(self.model.ffi(), self.data.ffi_mut()) };
+        {
+            let qpos = self.qpos_mut();
+            for (o, &(_, free)) in sample.objects.iter().zip(&l.objects) {
+                if let Some(a) = free {
+                    qpos[a..a + 7].copy_from_slice(o);
+                }
+            }
+            for ((_, adr, _), v) in l.fixture_joints.iter().zip(natives) {
+                qpos[*adr] = v;
+            }
+            for (i, &a) in l.arm_qpos.iter().enumerate() {
+                qpos[a] = sample.arm_rad[i];
+            }
+            for &a in &l.finger_qpos {
+                qpos[a] = sample.finger_m;
+            }
+        }
+        let ctrl = self.ctrl_mut();
+        for i in 0..N_JOINTS {
+            ctrl[l.pos_act[i]] = sample.arm_rad[i];
+            ctrl[l.vel_act[i]] = 0.0;
+        }
+        ctrl[l.grip_act] = sample.finger_m;
+        // SAFETY: the model/data pair of this Sim.
+        unsafe {
+            let d = self.data.ffi_mut();
+            d.time = sample.t_s;
+            mj_forward(self.model.ffi(), d);
+        }
+        Ok(())
     }
 
     fn slice_mut(&mut self, f: impl Fn(&mut mujoco_rs::mujoco_c::mjData) -> (*mut f64, usize)) -> &mut [f64] {

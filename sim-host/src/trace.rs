@@ -24,6 +24,10 @@ pub struct Sample {
     pub tcp_m: [f64; 3],
     /// Opening of one finger, m.
     pub finger_m: f64,
+    /// The arm's joint angles, rad (empty in traces written before they were recorded). Not
+    /// part of [`Trace::sha256`]: the hash of a run stays what it was before they were added.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub arm_rad: Vec<f64>,
     /// Pairs of owners in contact (indices into [`Trace::owners`], smaller first), sorted.
     pub contacts: Vec<[u16; 2]>,
     /// Deepest penetration between different owners, m (0 when none).
@@ -49,7 +53,8 @@ pub struct Trace {
 }
 
 impl Trace {
-    /// SHA-256 over every recorded number (little-endian f64) and contact pair, in order.
+    /// SHA-256 over every recorded number (little-endian f64) and contact pair, in order; the
+    /// arm's joint angles (`arm_rad`, added later) are left out, so a run hashes as it did before.
     pub fn sha256(&self) -> String {
         let mut h = Sha256::new();
         for s in &self.samples {
@@ -389,6 +394,7 @@ mod tests {
                     joints: vec![],
                     tcp_m: [0.3, 0.0, 0.5],
                     finger_m: 0.04,
+                    arm_rad: Vec::new(),
                     contacts: vec![],
                     penetration_m: p,
                     penetration_pair: [0, 2],

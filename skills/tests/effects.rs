@@ -33,6 +33,7 @@ fn trace(samples: &[Synthetic]) -> Trace {
                 joints: vec![],
                 tcp_m: [0.4, 0.0, 0.3],
                 finger_m: *f,
+                arm_rad: Vec::new(),
                 contacts: c.to_vec(),
                 penetration_m: 0.0,
                 penetration_pair: [0, 0],

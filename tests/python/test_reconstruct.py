@@ -1,0 +1,205 @@
+"""`r2g reconstruct` on synthetic frames: shipped gyms rendered by `r2g render` (real MuJoCo, EGL)
+from their agentview and two extra viewpoints, reconstructed, compared with the gym's own
+scene.toml, and validated with the gym's demonstration (`r2g validate`). Bad input: precise
+errors and no half-written gym. The geometry service is a real HTTP server on loopback that
+answers with the wire format (depth taken from the synthetic frames)."""
+from __future__ import annotations
+
+import base64
+import json
+import shutil
+import subprocess
+import sys
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "real2sim" / "py"))
+import r2g_reconstruct_eval as ev  # noqa: E402
+import r2g_reconstruct_io as rio  # noqa: E402
+
+R2G = ROOT / "target" / "release" / "r2g"
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory) -> Path:
+    """pick_block_plate rendered from three viewpoints (synthetic)."""
+    if not R2G.is_file():
+        pytest.fail(f"{R2G} missing: run `make build` first")
+    return ev.render_frames("pick_block_plate", tmp_path_factory.mktemp("rec") / "frames")
+
+
+@pytest.mark.parametrize("gym", ["pick_block_plate", "push_to_line", "stack_bowls"])
+def test_shipped_gym_reconstructs_and_validates(gym, tmp_path):
+    """Synthetic: every object found once, within 1 cm and 0.5 cm of size, IoU >= 0.9, and the
+    reconstructed gym passes the validation gate with the gym's demonstration."""
+    res = ev.evaluate(gym, tmp_path / gym, rounds=1)
+    assert "error" not in res, res
+    assert res["missed"] == [] and res["spurious"] == [], res
+    assert res["matched"] == res["truth_objects"], res
+    assert res["position_error_cm_max"] <= 1.0, res
+    assert res["size_error_cm_mean"] <= 0.5, res
+    assert res["iou_min"] >= 0.9, res
+    assert res["validate"]["success"], res
+    rep = json.loads((tmp_path / gym / "gym" / "reconstruction.json").read_text())
+    assert rep["rounds"] and all("per_view" in o for o in rep["rounds"][0]["objects"])
+    assert len(rep["rounds"][0]["objects"][0]["per_view"]) == 3
+
+
+def run(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([str(R2G), "reconstruct", *map(str, args)], capture_output=True, text=True, timeout=300)
+
+
+def test_empty_task_is_said(frames, tmp_path):
+    out = tmp_path / "gym"
+    p = run(frames, "--joints", frames / "joints.json", "--out", out, "--rounds", "0")
+    assert p.returncode == 0, p.stderr
+    assert "task: empty" in p.stdout
+    line = json.loads(p.stdout.strip().splitlines()[-1])
+    assert line["task_empty"] is True and sorted(line["kinds"]) == ["box", "cylinder"]
+    scene = (out / "scene.toml").read_text()
+    assert "success" not in scene and "fx = " in scene
+    # The gym is usable as it stands: the sim-host compiles it and renders it.
+    r = subprocess.run([str(R2G), "render", str(out), "--out", str(tmp_path / "r")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+
+
+def copy_frames(frames: Path, to: Path) -> Path:
+    shutil.copytree(frames, to)
+    return to
+
+
+def expect_error(tmp_path: Path, frames: Path, needle: str, *extra) -> None:
+    out = tmp_path / "gym"
+    p = run(frames, "--joints", extra[0] if extra else frames / "joints.json", "--out", out, "--rounds", "0",
+            *extra[1:])
+    assert p.returncode != 0, p.stdout
+    assert needle in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr, p.stderr
+    assert not out.exists(), "a half-written gym was left"
+    assert not any(x.name.startswith(".gym.partial") for x in tmp_path.iterdir())
+
+
+def test_missing_intrinsics(frames, tmp_path):
+    f = copy_frames(frames, tmp_path / "f")
+    doc = json.loads((f / "scene_camera.json").read_text())
+    del doc["1"]["cam_K"]
+    (f / "scene_camera.json").write_text(json.dumps(doc))
+    expect_error(tmp_path, f, "image '1': no \"cam_K\"")
+
+
+def test_nan_in_pose(frames, tmp_path):
+    f = copy_frames(frames, tmp_path / "f")
+    text = (f / "scene_camera.json").read_text()
+    doc = json.loads(text)
+    doc["0"]["cam_t_w2c"][1] = "NAN_HERE"
+    (f / "scene_camera.json").write_text(json.dumps(doc).replace('"NAN_HERE"', "NaN"))
+    expect_error(tmp_path, f, "\"cam_t_w2c\" holds NaN")
+
+
+def test_depth_of_another_size(frames, tmp_path):
+    f = copy_frames(frames, tmp_path / "f")
+    d = rio.read_png(f / "depth" / "000002.png")
+    rio.write_png(f / "depth" / "000002.png", np.ascontiguousarray(d[::2, ::2]))
+    expect_error(tmp_path, f, "depth/000002.png is 320x240 but its colour image 000002.png is 640x480")
+
+
+def test_depth_without_values(frames, tmp_path):
+    f = copy_frames(frames, tmp_path / "f")
+    rio.write_png(f / "depth" / "000000.png", np.zeros((480, 640), np.uint16))
+    expect_error(tmp_path, f, "holds no valid depth (every pixel is 0)")
+
+
+def test_no_objects(frames, tmp_path):
+    """The objects' pixels emptied (their masks from the render): empty masks are an error."""
+    f = copy_frames(frames, tmp_path / "f")
+    for k in ("000000", "000001", "000002"):
+        d = rio.read_png(f / "depth" / f"{k}.png")
+        for m in sorted((f / "mask_visib").glob(f"{k}_*.png")):
+            d[rio.read_png(m) > 0] = 0
+        rio.write_png(f / "depth" / f"{k}.png", d)
+    expect_error(tmp_path, f, "no object found on the support plane")
+
+
+def test_bad_joints(frames, tmp_path):
+    expect_error(tmp_path, frames, "--joints: 3 values given", "0,1,2")
+    expect_error(tmp_path, frames, "joint 4 = 0.5000 rad is outside", "0,0,0,0.5,0,1.57,0.78")
+
+
+def test_task_naming_an_unknown_object(frames, tmp_path):
+    task = tmp_path / "task.toml"
+    task.write_text('[task]\ninstruction = "x"\nsuccess = [{ kind = "on", object = "cup", support = "table" }]\n')
+    expect_error(tmp_path, frames, "names object 'cup', which the reconstruction does not have",
+                 frames / "joints.json", "--task", task)
+
+
+class Geometry(BaseHTTPRequestHandler):
+    """A geometry service on loopback: answers the depth of the synthetic frame whose RGB it
+    receives (looked up by the PNG's pixels), or NaN in `nan` mode."""
+    depths: dict = {}
+    mode = "ok"
+
+    def do_POST(self):  # noqa: N802 - http.server's name
+        body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+        png = base64.b64decode(body["image"]["png"])
+        tmp = Path(self.server.tmp) / "q.png"  # type: ignore[attr-defined]
+        tmp.write_bytes(png)
+        rgb = rio.read_png(tmp)
+        key = rgb.tobytes()[:: 997][:4096]
+        d = self.depths[key].astype("<f4").copy()
+        if self.mode == "nan":
+            d[10, 10] = np.nan
+        ans = {"depth": {"dtype": "float32", "shape": list(d.shape), "data": base64.b64encode(d.tobytes()).decode()}}
+        data = json.dumps(ans).encode()
+        self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+    def log_message(self, *a):
+        pass
+
+
+@pytest.fixture()
+def rgb_only(frames, tmp_path):
+    f = tmp_path / "rgb_only"
+    shutil.copytree(frames, f)
+    sc = json.loads((f / "scene_camera.json").read_text())
+    Geometry.depths = {}
+    for im in sc:
+        rgb = rio.read_png(f / "rgb" / f"{int(im):06d}.png")[..., :3]
+        d = rio.read_png(f / "depth" / f"{int(im):06d}.png").astype(np.float32) * 0.1 / 1000
+        Geometry.depths[np.ascontiguousarray(rgb).tobytes()[:: 997][:4096]] = d
+    shutil.rmtree(f / "depth")
+    srv = ThreadingHTTPServer(("127.0.0.1", 0), Geometry)
+    srv.tmp = str(tmp_path)  # type: ignore[attr-defined]
+    t = threading.Thread(target=srv.serve_forever, daemon=True)
+    t.start()
+    yield f, f"http://127.0.0.1:{srv.server_address[1]}/depth"
+    srv.shutdown()
+    srv.server_close()
+
+
+def test_rgb_only_with_geometry_service(rgb_only, tmp_path):
+    f, url = rgb_only
+    Geometry.mode = "ok"
+    p = run(f, "--joints", f / "joints.json", "--out", tmp_path / "gym", "--rounds", "0", "--geometry-url", url)
+    assert p.returncode == 0, p.stderr
+    rep = json.loads((tmp_path / "gym" / "reconstruction.json").read_text())
+    assert rep["images"][0]["depth"].startswith("geometry service")
+    assert sorted(json.loads(p.stdout.strip().splitlines()[-1])["kinds"]) == ["box", "cylinder"]
+
+
+def test_geometry_service_nan_and_down(rgb_only, tmp_path):
+    f, url = rgb_only
+    Geometry.mode = "nan"
+    expect_error(tmp_path, f, "holds 1 NaN or infinite values", f / "joints.json", "--geometry-url", url)
+    Geometry.mode = "ok"
+    expect_error(tmp_path, f, "has no depth/ folder: give depth PNGs or a geometry service", f / "joints.json")
+    expect_error(tmp_path, f, "is not reachable: connection refused", f / "joints.json",
+                 "--geometry-url", "http://127.0.0.1:9/depth")
