@@ -8,6 +8,10 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 venv=.venv-blender
 stamp="$venv/r2g-requirements.sha256"
+# One installer at a time: two `r2g blender`/`compare`/`judge` started together both find the
+# stamp missing; the second waits here, then finds it written.
+exec 9>"$venv.lock"
+flock 9
 want=$(sha256sum requirements-blender.txt | cut -d' ' -f1)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && [ -x "$venv/bin/python" ]; then
   exit 0
@@ -19,6 +23,10 @@ command -v "$py" >/dev/null || py=python3
 start=$(date +%s)
 echo "setup-blender: installing bpy 5.0.1 into $venv (about 374 MB to download)" >&2
 rm -f "$stamp"
+# A venv left by another Python is made again (its packages would not load).
+if [ -x "$venv/bin/python" ] && ! "$venv/bin/python" -c 'import sys; assert sys.version_info[:2] == (3, 11)' 2>/dev/null; then
+  rm -rf "$venv"
+fi
 [ -x "$venv/bin/python" ] || "$py" -m venv "$venv"
 "$venv/bin/python" -m pip install -q --disable-pip-version-check -r requirements-blender.txt
 # The import is the check that counts: the wheel loads its own libraries, and a machine that

@@ -1,6 +1,8 @@
 #![doc = include_str!("../README.md")]
 
 pub mod augment;
+pub mod blender;
+pub mod compare;
 pub mod droid;
 pub mod egodex;
 pub mod events;

@@ -5,15 +5,14 @@ minute on a two-core machine."""
 from __future__ import annotations
 
 import json
-import struct
 import subprocess
-import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from conftest import R2G, ROOT, STRICT
+from pngdecode import read as read_png
 
 BLENDER_PY = ROOT / ".venv-blender" / "bin" / "python"
 GYM = "pick_block_plate"
@@ -23,47 +22,6 @@ if not BLENDER_PY.is_file():
     if STRICT:
         pytest.fail(f"{why}; make test installs it", pytrace=False)
     pytest.skip(why, allow_module_level=True)
-
-
-def read_png(path: Path) -> np.ndarray:
-    """An 8-bit grey, RGB or RGBA PNG (no interlace) as an array of height x width x channels."""
-    data = path.read_bytes()
-    assert data[:8] == b"\x89PNG\r\n\x1a\n", path
-    pos, idat = 8, b""
-    while pos < len(data):
-        (length,) = struct.unpack(">I", data[pos:pos + 4])
-        kind, body = data[pos + 4:pos + 8], data[pos + 8:pos + 8 + length]
-        pos += 12 + length
-        if kind == b"IHDR":
-            w, h, depth, color, _, _, interlace = struct.unpack(">IIBBBBB", body)
-            assert depth == 8 and color in (0, 2, 6) and not interlace, (path, depth, color)
-            ch = {0: 1, 2: 3, 6: 4}[color]
-        elif kind == b"IDAT":
-            idat += body
-    raw = np.frombuffer(zlib.decompress(idat), dtype=np.uint8).reshape(h, w * ch + 1)
-    out = np.zeros((h, w * ch), dtype=np.int32)
-    prev = np.zeros(w * ch, dtype=np.int32)
-    for y in range(h):
-        f, line = raw[y, 0], raw[y, 1:].astype(np.int32)
-        if f == 0:
-            cur = line
-        elif f == 2:
-            cur = (line + prev) & 255
-        else:
-            cur = line.copy()
-            for i in range(w * ch):
-                a = cur[i - ch] if i >= ch else 0
-                b, c = prev[i], (prev[i - ch] if i >= ch else 0)
-                if f == 1:
-                    pred = a
-                elif f == 3:
-                    pred = (a + b) // 2
-                else:
-                    pa, pb, pc = abs(b - c), abs(a - c), abs(a + b - 2 * c)
-                    pred = a if pa <= pb and pa <= pc else (b if pb <= pc else c)
-                cur[i] = (cur[i] + pred) & 255
-        out[y], prev = cur, cur
-    return out.reshape(h, w, ch).astype(np.uint8)
 
 
 def r2g(*args, ok=True, timeout=300):
@@ -199,8 +157,8 @@ def test_compare_sheet_blender_and_mujoco_silhouettes_agree(tmp_path, trace):
         times.append(shot["rgb_s"] + shot["label_s"])
     print(f"Blender per frame (640x480, 4 samples, plus the mask pass): {[round(t, 2) for t in times]} s")
     # The measure can fail: the block's Blender mask at rest against MuJoCo's with the block lifted.
-    mj = read_png(renders / "mujoco" / "mask_visib" / f"{report['rows'][1]['mujoco_image']:06d}_000000.png")[..., 0] > 127
-    bl = read_png(renders / "blender" / "mask_visib" / f"{report['rows'][0]['blender_image']:06d}_000000.png")[..., 0] > 127
+    mj = read_png(renders / "mujoco" / "mask_visib" / f"{report['rows'][1]['mujoco_image']:06d}_000000.png") > 127
+    bl = read_png(renders / "blender" / "mask_visib" / f"{report['rows'][0]['blender_image']:06d}_000000.png") > 127
     assert mj.sum() == report["rows"][1]["objects"]["block"]["mujoco_px"]
     assert (mj & bl).sum() / max((mj | bl).sum(), 1) < 0.5
 
@@ -232,6 +190,55 @@ def test_compare_against_source_frames_from_off_centre_cameras(tmp_path, trace):
             assert o["mujoco_px"] > 100 and o["iou"] >= IOU_MIN, (row["camera"], name, o)
 
 
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def test_blender_renders_the_cameras_of_a_bop_file_as_mujoco_does(tmp_path, trace):
+    # A synthetic BOP camera file: the scene's cameras as r2g render writes them, moved to an
+    # off-centre principal point (-50, +35 px) with fx 6 % below fy. MuJoCo (r2g render
+    # --cameras) and Blender (r2g blender --cameras) render the trace's first state from it.
+    first = tmp_path / "first"
+    r2g("render", GYM, "--out", first)
+    cams = json.loads((first / "scene_camera.json").read_text())
+    for c in cams.values():
+        c["cam_K"][0] *= 0.94
+        c["cam_K"][2] -= 50.0
+        c["cam_K"][5] += 35.0
+    cams_file = tmp_path / "cameras.json"
+    cams_file.write_text(json.dumps(cams))
+    mj, bl = tmp_path / "mujoco", tmp_path / "blender"
+    r2g("render", GYM, "--cameras", cams_file, "--trace", trace, "--at", "0", "--out", mj)
+    r = r2g("blender", GYM, "--trace", trace, "--cameras", cams_file, "--out", tmp_path / "bop.blend",
+            "--render", bl, "--at", "0", "--samples", "1", "--percent", "100")
+    summary = json.loads(r.stdout.strip().splitlines()[-1])
+    assert summary["cameras"] == len(cams)
+    mjc = json.loads((mj / "scene_camera.json").read_text())
+    blc = json.loads((bl / "scene_camera.json").read_text())
+    assert sorted(blc) == sorted(mjc) and len(blc) == len(cams)
+    for i, m in mjc.items():
+        b = blc[i]
+        # The same image of the file, with the file's intrinsics, pose and size.
+        assert b["r2g_camera"] == m["r2g_camera"] and (b["width"], b["height"]) == (m["width"], m["height"])
+        assert b["cam_K"] == pytest.approx(cams[m["r2g_camera"]]["cam_K"], abs=1e-6)
+        assert b["cam_R_w2c"] == pytest.approx(m["cam_R_w2c"], abs=1e-5)
+        assert b["cam_t_w2c"] == pytest.approx(m["cam_t_w2c"], abs=1e-2)
+        for k, name in enumerate(("block", "plate")):
+            a = read_png(mj / "mask_visib" / f"{int(i):06d}_{k:06d}.png") > 127
+            c = read_png(bl / "mask_visib" / f"{int(i):06d}_{k:06d}.png") > 127
+            assert a.shape == c.shape == (m["height"], m["width"])
+            v = iou(a, c)
+            print(f"BOP camera {m['r2g_camera']}, {name}: MuJoCo {a.sum()} px, Blender {c.sum()} px, IoU {v:.4f}")
+            assert a.sum() > 100 and v >= IOU_MIN, (i, name, int(a.sum()), int(c.sum()), v)
+    # The measure can fail: the file's principal point undone on Blender's side moves every
+    # silhouette by 50 and 35 pixels, far from MuJoCo's.
+    a = read_png(mj / "mask_visib" / "000000_000001.png") > 127
+    c = read_png(bl / "mask_visib" / "000000_000001.png") > 127
+    assert iou(a, np.roll(c, (35, -50), axis=(0, 1))) < IOU_MIN
+    times = [s["rgb_s"] + s["label_s"] for s in summary["blender"]["shots"]]
+    print(f"Blender per frame (640x480, 1 sample, plus the mask pass): {[round(t, 2) for t in times]} s")
+
+
 def test_bad_input_is_named_and_leaves_nothing(tmp_path, trace):
     blend = tmp_path / "x.blend"
     # A trace of another gym.
@@ -252,4 +259,14 @@ def test_bad_input_is_named_and_leaves_nothing(tmp_path, trace):
     assert r.returncode != 0 and "outside the motion's span" in r.stderr
     r = r2g("blender", GYM, "--trace", trace, "--out", tmp_path / "x.txt", ok=False)
     assert r.returncode != 0 and "name a .blend file" in r.stderr
+    # A BOP camera file without the image size, and one given with --camera.
+    cams = tmp_path / "cams.json"
+    cams.write_text(json.dumps({"0": {"cam_K": [500, 0, 320, 0, 500, 240, 0, 0, 1],
+                                      "cam_R_w2c": [1, 0, 0, 0, 1, 0, 0, 0, 1], "cam_t_w2c": [0, 0, 1000]}}))
+    r = r2g("blender", GYM, "--trace", trace, "--cameras", cams, "--out", blend, ok=False)
+    assert r.returncode != 0 and "image '0': no \"width\"" in r.stderr, r.stderr
+    r = r2g("blender", GYM, "--trace", trace, "--cameras", cams, "--camera", "agentview", "--render",
+            tmp_path / "r", "--at", "0", "--out", blend, ok=False)
+    assert r.returncode != 0 and "give one or the other" in r.stderr
+    cams.unlink()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old.trace.json"]
