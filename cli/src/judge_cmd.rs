@@ -17,8 +17,10 @@ pub struct JudgeArgs {
     pub gym: String,
     /// An endpoint TOML file (agent-host/endpoints/), "record:<toml>", "replay:<cassette.jsonl>",
     /// or "scripted[:<answers.json>]": the scripted server on loopback answering with a synthetic
-    /// answer written in advance (default: real2sim/judge/scripted/<gym>.json). Scores from the
-    /// scripted endpoint test the mechanics only; they are not measurements.
+    /// answer written in advance (default: real2sim/judge/scripted/<gym>.json). "scripted" is the
+    /// default, as for `r2g episode` and `r2g skills extract`: r2g has no configured endpoint of
+    /// its own, so a real grade needs an endpoint file named here. Scores from the scripted
+    /// endpoint test the mechanics only; they are not measurements, and the output says so first.
     #[arg(long, default_value = "scripted")]
     pub llm: String,
     /// Wire format for `--llm scripted`: openai or anthropic.
@@ -71,10 +73,10 @@ fn render(engine: Engine, scene: &Path, req: &RenderRequest, out: &Path) -> anyh
             }
         }
         Engine::Blender => {
-            if req.cameras.is_some() {
-                bail!("r2g blender renders the scene's own cameras only; it takes no BOP scene_camera.json");
-            }
             cmd.arg("blender").arg(scene).arg("--out").arg(out.with_extension("blend")).arg("--render").arg(out);
+            if let Some(c) = &req.cameras {
+                cmd.arg("--cameras").arg(c);
+            }
         }
     }
     for c in &req.camera {
@@ -123,6 +125,13 @@ pub fn run(a: JudgeArgs) -> anyhow::Result<i32> {
     o.blender = !a.no_blender;
     o.seed = a.seed;
 
+    let scripted = a.llm == "scripted" || a.llm.starts_with("scripted:");
+    if scripted {
+        eprintln!(
+            "r2g judge: mechanics only: --llm {} answers with a synthetic answer written in advance; the scores are not measurements",
+            a.llm
+        );
+    }
     // The scripted default is this gym's synthetic judge answer; it grades Blender images, so a
     // run without them takes the variant that leaves that part ungraded.
     let suffix = if a.no_blender { "-no-blender" } else { "" };
@@ -168,6 +177,17 @@ pub fn run(a: JudgeArgs) -> anyhow::Result<i32> {
     let s = &v["scores"];
     for k in ["content_alignment", "viewpoint_alignment", "action_fidelity", "task_completion", "simulation_success"] {
         eprintln!("  {k:<20} {}", s[k]);
+        if k == "content_alignment" && s["content_alignment_partial"] == true {
+            eprintln!(
+                "    (partial: MuJoCo part {}, Blender part {}; {})",
+                s["content_alignment_mujoco"],
+                s["content_alignment_blender"],
+                s["content_alignment_basis"].as_str().unwrap_or_default()
+            );
+        }
+        if k == "action_fidelity" && !s["action_fidelity_rule"].is_null() {
+            eprintln!("    ({})", s["action_fidelity_rule"].as_str().unwrap_or_default());
+        }
     }
     if v["override"]["applied"] == true {
         eprintln!("  physical-failure override applied: {}", v["override"]["reasons"]);
@@ -175,7 +195,11 @@ pub fn run(a: JudgeArgs) -> anyhow::Result<i32> {
     println!(
         "{}",
         json!({"gym": v["gym"], "judge": r.path.display().to_string(), "measurement": v["measurement"],
-               "scores": {"content_alignment": s["content_alignment"], "viewpoint_alignment": s["viewpoint_alignment"],
+               "label": v["label"],
+               "scores": {"content_alignment": s["content_alignment"],
+                          "content_alignment_mujoco": s["content_alignment_mujoco"],
+                          "content_alignment_blender": s["content_alignment_blender"],
+                          "viewpoint_alignment": s["viewpoint_alignment"],
                           "action_fidelity": s["action_fidelity"], "task_completion": s["task_completion"],
                           "simulation_success": s["simulation_success"]},
                "override": v["override"]["applied"], "model": v["llm"]["model"], "tokens": v["llm"]["usage"]})

@@ -8,11 +8,17 @@
 //! call ([`AskFn`]) are handed in by the caller (`cli`: `r2g render`, `r2g blender`, and
 //! `agent_host::llm`), so this crate keeps its layer.
 //!
-//! Scores we compute rather than take from the model: content alignment (the MuJoCo part plus the
-//! Blender part), action fidelity (six parts, then the `wrong_goal` / `non_equivalent` rules),
-//! task completion (three parts), simulation success = action fidelity × task completion / 100,
-//! and the physical-failure override (0 when the native verdict measured penetration or an object
-//! not at rest, or the model reports such an event).
+//! Viewpoint evidence is the gym's own cameras rendered at rest, each shown after the source frame
+//! it stands for (a camera `cam_<id>`, as `r2g reconstruct` names them, or the camera name a frame
+//! records); without such a correspondence the gym's cameras are sent unpaired and the request
+//! says so.
+//!
+//! Scores we compute rather than take from the model ([`scores`]): content alignment (the MuJoCo
+//! part plus the Blender part; none, with the part given alone, when one engine's images are
+//! missing), action fidelity (six parts, then the `wrong_goal` / `non_equivalent` rules), task
+//! completion (three parts), simulation success = action fidelity × task completion / 100, and
+//! the physical-failure override (0 when the native verdict measured initial or persistent
+//! penetration, or the model reports a confirmed failure).
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -28,7 +34,7 @@ use crate::sha256_hex;
 /// The rubric, the system prompt of every request.
 pub const RUBRIC: &str = include_str!("../judge/rubric.md");
 /// Bumped whenever the rubric or the answer's shape changes.
-pub const RUBRIC_VERSION: u32 = 1;
+pub const RUBRIC_VERSION: u32 = 2;
 
 /// A piece of the user message.
 #[derive(Debug, Clone)]
@@ -138,6 +144,10 @@ struct Image {
     label: String,
     png: Vec<u8>,
     file: PathBuf,
+    /// The source image id, for source frames.
+    id: Option<u64>,
+    /// The camera that took it (`r2g_camera`), when recorded.
+    camera: Option<String>,
 }
 
 /// A set of images, or why there is none.
@@ -184,29 +194,45 @@ pub fn run(scene_path: &Path, o: &Options, render: RenderFn, ask: AskFn) -> anyh
     let source_images: ImageSet = source
         .as_ref()
         .map_err(Clone::clone)
-        .and_then(|s| s.ids.iter().map(|id| s.image(*id)).collect::<Result<Vec<_>, String>>());
+        .and_then(|s| s.frames.iter().map(|f| s.image(f)).collect::<Result<Vec<_>, String>>());
     if let Err(why) = &source_images {
         missing.push(format!("source frames: {why}"));
     }
 
-    // The scene at rest from the source cameras, and the trace at instants.
+    // The viewpoint evidence: the gym's own cameras at rest, each paired with the source frame it
+    // stands for where that is known. The source cameras are not rendered: the question is
+    // whether the gym's cameras see what the reference cameras saw.
+    let gym_cameras: Vec<String> = scene.cameras.iter().map(|c| c.name.clone()).collect();
+    let viewpoints = source.as_ref().ok().map(|s| {
+        let frames: Vec<(u64, String, Option<String>)> = s
+            .frames
+            .iter()
+            .map(|(id, key)| (*id, key.clone(), s.cameras[key]["r2g_camera"].as_str().map(str::to_string)))
+            .collect();
+        pair_viewpoints(&gym_cameras, &frames, o.max_frames)
+    });
+    // The trace at instants.
     let camera = trace_camera(&scene, o.camera.as_deref())?;
     let instants = match (&o.at, &verdict.trace) {
         (Some(at), _) => at.clone(),
         (None, Some(_)) => instants(&verdict.value),
         (None, None) => Vec::new(),
     };
+    let mut rest: Vec<(Engine, ImageSet)> = Vec::new();
     let mut sets: Vec<(String, Engine, ImageSet)> = Vec::new();
     for engine in [Engine::Mujoco, Engine::Blender] {
         let skip = (engine == Engine::Blender && !o.blender).then(|| "not requested (--no-blender)".to_string());
-        if let Ok(s) = &source {
-            let dir = o.out.join("evidence").join(format!("{}-source", engine.key()));
-            let req = RenderRequest { cameras: Some(s.cameras_file.clone()), ..Default::default() };
+        if let Some(vp) = &viewpoints {
+            let dir = o.out.join("evidence").join(format!("{}-rest", engine.key()));
+            let req = RenderRequest { camera: vp.cameras(), ..Default::default() };
             let set = match &skip {
                 Some(why) => Err(why.clone()),
-                None => render_set(render, engine, scene_path, &req, &dir),
+                None => render_set(render, engine, scene_path, &req, &dir).map(|set| label_rest(engine, set, vp)),
             };
-            sets.push(("at rest, from the source cameras".into(), engine, set));
+            if let Err(why) = &set {
+                missing.push(format!("{} images at rest from the gym's own cameras: {why}", engine.name()));
+            }
+            rest.push((engine, set));
         }
         let dir = o.out.join("evidence").join(format!("{}-trace", engine.key()));
         let (what, req) = match &verdict.trace {
@@ -228,16 +254,17 @@ pub fn run(scene_path: &Path, o: &Options, render: RenderFn, ask: AskFn) -> anyh
             Some(why) => Err(why.clone()),
             None => render_set(render, engine, scene_path, &req, &dir),
         };
-        sets.push((what, engine, set));
-    }
-    for (what, engine, set) in &sets {
-        if let Err(why) = set {
+        if let Err(why) = &set {
             missing.push(format!("{} images {what}: {why}", engine.name()));
         }
+        sets.push((what, engine, set));
     }
 
     // Items that cannot be graded from what is here.
-    let has = |e: Engine| sets.iter().any(|(_, en, s)| *en == e && s.as_ref().is_ok_and(|v| !v.is_empty()));
+    let has = |e: Engine| {
+        sets.iter().any(|(_, en, s)| *en == e && s.as_ref().is_ok_and(|v| !v.is_empty()))
+            || rest.iter().any(|(en, s)| *en == e && s.as_ref().is_ok_and(|v| !v.is_empty()))
+    };
     let mut nullable = BTreeSet::new();
     if !has(Engine::Mujoco) {
         nullable.insert("content_alignment.mujoco".to_string());
@@ -245,31 +272,70 @@ pub fn run(scene_path: &Path, o: &Options, render: RenderFn, ask: AskFn) -> anyh
     if !has(Engine::Blender) {
         nullable.insert("content_alignment.blender".to_string());
     }
-    if source_images.as_ref().map_or(true, Vec::is_empty) {
+    let any_rest = rest.iter().any(|(_, s)| s.as_ref().is_ok_and(|v| !v.is_empty()));
+    if source_images.as_ref().map_or(true, Vec::is_empty) || !any_rest {
         nullable.insert("viewpoint_alignment".to_string());
     }
 
     // The request.
     let mut parts: Vec<Part> = Vec::new();
     let mut images: Vec<Value> = Vec::new();
-    let mut push_images = |parts: &mut Vec<Part>, set: &[Image]| {
-        for im in set {
-            parts.push(Part::Text(im.label.clone()));
-            images.push(json!({"label": im.label, "file": im.file.display().to_string(),
-                               "png_sha256": sha256_hex(&im.png), "bytes": im.png.len()}));
-            parts.push(Part::Png(im.png.clone()));
-        }
+    let mut push_image = |parts: &mut Vec<Part>, im: &Image| {
+        parts.push(Part::Text(im.label.clone()));
+        images.push(json!({"label": im.label, "file": im.file.display().to_string(),
+                           "png_sha256": sha256_hex(&im.png), "bytes": im.png.len()}));
+        parts.push(Part::Png(im.png.clone()));
     };
     parts.push(Part::Text(header(&scene, &source, &missing, &nullable)));
     parts.push(Part::Text(scene_text(&scene)));
-    if let Ok(s) = &source_images {
-        parts.push(Part::Text(format!("## Reference: {} source frame(s)", s.len())));
-        push_images(&mut parts, s);
+    if let (Ok(s), Some(vp)) = (&source_images, &viewpoints) {
+        let rest_images: Vec<&Image> = rest.iter().filter_map(|(_, set)| set.as_ref().ok()).flatten().collect();
+        if vp.pairs.is_empty() {
+            parts.push(Part::Text(format!("## Reference: {} source frame(s)", s.len())));
+            for im in s {
+                push_image(&mut parts, im);
+            }
+            parts.push(Part::Text(format!(
+                "## The gym's own cameras at rest, NOT paired with the source frames: {} image(s)\n{}",
+                rest_images.len(),
+                vp.basis
+            )));
+            for im in &rest_images {
+                push_image(&mut parts, im);
+            }
+        } else {
+            parts.push(Part::Text(format!(
+                "## Reference and viewpoints: {} source frame(s), each followed by the gym's own camera that \
+                 corresponds to it, rendered at rest\n{}",
+                s.len(),
+                vp.basis
+            )));
+            let mut sent: BTreeSet<PathBuf> = BTreeSet::new();
+            for im in s {
+                push_image(&mut parts, im);
+                let Some(cam) = vp.pairs.iter().find(|p| Some(p.1) == im.id).map(|p| &p.0) else {
+                    parts.push(Part::Text(format!(
+                        "(The gym has no camera that corresponds to source frame {}.)",
+                        im.id.unwrap_or_default()
+                    )));
+                    continue;
+                };
+                for r in rest_images.iter().filter(|r| r.camera.as_ref() == Some(cam)) {
+                    if sent.insert(r.file.clone()) {
+                        push_image(&mut parts, r);
+                    } else {
+                        parts.push(Part::Text(format!("(Compare with the image of {cam} shown above: {}.)", r.label)));
+                    }
+                }
+            }
+        }
     }
     for (what, engine, set) in &sets {
         if let Ok(s) = set {
             parts.push(Part::Text(format!("## {} images {what}: {} image(s)", engine.name(), s.len())));
-            push_images(&mut parts, s);
+            for im in s {
+                push_image(&mut parts, im);
+            }
         }
     }
     parts.push(Part::Text(demonstration_text(&scene, scene_path, &verdict)));
@@ -294,29 +360,12 @@ pub fn run(scene_path: &Path, o: &Options, render: RenderFn, ask: AskFn) -> anyh
         anyhow::anyhow!("the judge's answer is not valid: {why}. The raw answer is in {}", raw_path.display())
     })?;
 
-    // Scores.
-    let (ca, ca_basis) = match (answer.ca_mujoco, answer.ca_blender) {
-        (Some(m), Some(b)) => (Some(m + b), "MuJoCo part + Blender part"),
-        (Some(m), None) => (Some(2.0 * m), "MuJoCo part doubled: no Blender images to grade"),
-        (None, Some(b)) => (Some(2.0 * b), "Blender part doubled: no MuJoCo images to grade"),
-        (None, None) => (None, "not graded: no rendered images"),
-    };
-    let af_sum: f64 = answer.af_parts.iter().sum();
-    let af = if answer.wrong_goal {
-        0.0
-    } else if answer.non_equivalent {
-        af_sum.min(40.0)
-    } else {
-        af_sum
-    };
-    let tc: f64 = answer.tc_parts.iter().sum();
-    let before = af * tc / 100.0;
+    // Scores: ours, from the parts.
+    let sc = scores(&answer, !native_failures.is_empty());
     let mut reasons: Vec<Value> = native_failures.iter().map(|r| json!({"from": "native verdict", "why": r})).collect();
     if answer.physical_failure {
         reasons.push(json!({"from": "judge", "why": answer.physical_failure_why}));
     }
-    let overridden = !reasons.is_empty();
-    let ss = if overridden { 0.0 } else { before };
 
     let scripted = reply.source == "scripted";
     let record = json!({
@@ -331,18 +380,20 @@ pub fn run(scene_path: &Path, o: &Options, render: RenderFn, ask: AskFn) -> anyh
             "scores from the model named in llm.model"
         },
         "scores": {
-            "content_alignment": ca.map(r2),
+            "content_alignment": sc.content_alignment.map(r2),
             "content_alignment_mujoco": answer.ca_mujoco.map(r2),
             "content_alignment_blender": answer.ca_blender.map(r2),
-            "content_alignment_basis": ca_basis,
+            "content_alignment_partial": sc.content_alignment_partial,
+            "content_alignment_basis": sc.content_alignment_basis,
             "viewpoint_alignment": answer.viewpoint.map(r2),
-            "action_fidelity": r2(af),
-            "action_fidelity_parts_sum": r2(af_sum),
-            "task_completion": r2(tc),
-            "simulation_success": r2(ss),
-            "simulation_success_before_override": r2(before),
+            "action_fidelity": r2(sc.action_fidelity),
+            "action_fidelity_parts_sum": r2(sc.action_fidelity_parts_sum),
+            "action_fidelity_rule": sc.action_fidelity_rule,
+            "task_completion": r2(sc.task_completion),
+            "simulation_success": r2(sc.simulation_success),
+            "simulation_success_before_override": r2(sc.simulation_success_before_override),
         },
-        "override": {"applied": overridden, "reasons": reasons},
+        "override": {"applied": sc.overridden, "reasons": reasons},
         "answer": answer.value,
         "llm": {
             "source": reply.source, "model": reply.model, "provider": reply.provider,
@@ -356,6 +407,13 @@ pub fn run(scene_path: &Path, o: &Options, render: RenderFn, ask: AskFn) -> anyh
             "images": images,
             "missing_evidence": missing,
             "not_gradable": nullable,
+            "viewpoints": viewpoints.as_ref().map(|vp| json!({
+                "paired": !vp.pairs.is_empty(),
+                "pairs": vp.pairs.iter().map(|(c, id)| json!({"gym_camera": c, "source_id": id})).collect::<Vec<_>>(),
+                "unpaired_gym_cameras": vp.unpaired_cameras,
+                "unpaired_source_ids": vp.unpaired_frames,
+                "basis": vp.basis,
+            })),
             "instants_s": instants,
             "trace_camera": camera,
         },
@@ -372,6 +430,169 @@ pub fn run(scene_path: &Path, o: &Options, render: RenderFn, ask: AskFn) -> anyh
     let path = o.out.join("judge.json");
     write_atomic(&path, &serde_json::to_vec_pretty(&record)?)?;
     Ok(Outcome { path, record })
+}
+
+// ---------------------------------------------------------------- scores
+
+/// The figures we compute from a checked answer.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scores {
+    /// MuJoCo part + Blender part; `None` unless both parts were graded.
+    pub content_alignment: Option<f64>,
+    /// Only one engine's part was graded (it is reported alone, not scaled up).
+    pub content_alignment_partial: bool,
+    pub content_alignment_basis: &'static str,
+    /// The six parts added up, before the two rules.
+    pub action_fidelity_parts_sum: f64,
+    pub action_fidelity: f64,
+    /// `wrong_goal` (0) or `non_equivalent` (at most 40), when one applied.
+    pub action_fidelity_rule: Option<&'static str>,
+    pub task_completion: f64,
+    pub simulation_success_before_override: f64,
+    pub simulation_success: f64,
+    /// The physical-failure override zeroed simulation success.
+    pub overridden: bool,
+}
+
+/// The arithmetic of the rubric, and nothing else: content alignment = the two engine parts
+/// added (absent when either is); action fidelity = the six parts added, 0 when `wrong_goal`,
+/// at most 40 when `non_equivalent`; task completion = its three parts added; simulation success
+/// = action fidelity × task completion / 100, and 0 when a physical failure is confirmed (by the
+/// native checks, `native_physical_failure`, or by the model's own report).
+pub fn scores(a: &Answer, native_physical_failure: bool) -> Scores {
+    let (content_alignment, content_alignment_partial, content_alignment_basis) = match (a.ca_mujoco, a.ca_blender) {
+        (Some(m), Some(b)) => (Some(m + b), false, "MuJoCo part + Blender part"),
+        (Some(_), None) => (
+            None,
+            true,
+            "partial: no Blender images were graded, so there is no total; the MuJoCo part (0-50) stands alone",
+        ),
+        (None, Some(_)) => (
+            None,
+            true,
+            "partial: no MuJoCo images were graded, so there is no total; the Blender part (0-50) stands alone",
+        ),
+        (None, None) => (None, false, "not graded: no rendered images"),
+    };
+    let sum: f64 = a.af_parts.iter().sum();
+    let (action_fidelity, action_fidelity_rule) = if a.wrong_goal {
+        (0.0, Some("wrong_goal: action fidelity is 0"))
+    } else if a.non_equivalent {
+        (sum.min(40.0), Some("non_equivalent: action fidelity is capped at 40"))
+    } else {
+        (sum, None)
+    };
+    let task_completion: f64 = a.tc_parts.iter().sum();
+    let before = action_fidelity * task_completion / 100.0;
+    let overridden = native_physical_failure || a.physical_failure;
+    Scores {
+        content_alignment,
+        content_alignment_partial,
+        content_alignment_basis,
+        action_fidelity_parts_sum: sum,
+        action_fidelity,
+        action_fidelity_rule,
+        task_completion,
+        simulation_success_before_override: before,
+        simulation_success: if overridden { 0.0 } else { before },
+        overridden,
+    }
+}
+
+// ---------------------------------------------------------------- viewpoints
+
+/// Which of the gym's own cameras stands for which source frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Viewpoints {
+    /// (gym camera, source image id), in source-frame order.
+    pub pairs: Vec<(String, u64)>,
+    /// The gym's cameras rendered with no known source frame (only when nothing pairs).
+    pub unpaired_cameras: Vec<String>,
+    /// Source frames no camera of the gym stands for.
+    pub unpaired_frames: Vec<u64>,
+    /// How the pairs were found, or why there are none, for the request.
+    pub basis: String,
+}
+
+impl Viewpoints {
+    /// The gym cameras to render at rest, each once.
+    pub fn cameras(&self) -> Vec<String> {
+        let mut out: Vec<String> = Vec::new();
+        for c in self.pairs.iter().map(|p| &p.0).chain(&self.unpaired_cameras) {
+            if !out.contains(c) {
+                out.push(c.clone());
+            }
+        }
+        out
+    }
+}
+
+/// Pairs the gym's cameras (`gym`, in scene order) with source frames (`frames`: image id, its
+/// key in scene_camera.json, the camera name the frame records as `r2g_camera`). A gym camera
+/// stands for a frame when it is named `cam_<id>` (the name `r2g reconstruct` gives the camera
+/// it makes from that frame), or else when it has the name the frame records. When nothing
+/// pairs, the first `max` gym cameras are sent unpaired.
+pub fn pair_viewpoints(gym: &[String], frames: &[(u64, String, Option<String>)], max: usize) -> Viewpoints {
+    let mut pairs = Vec::new();
+    let mut unpaired_frames = Vec::new();
+    let (mut by_reconstruct, mut by_record) = (false, false);
+    for (id, key, recorded) in frames {
+        let named = [format!("cam_{key}"), format!("cam_{id}")];
+        if let Some(c) = gym.iter().find(|c| named.contains(c)) {
+            pairs.push((c.clone(), *id));
+            by_reconstruct = true;
+        } else if let Some(c) = recorded.as_ref().and_then(|r| gym.iter().find(|c| *c == r)) {
+            pairs.push((c.clone(), *id));
+            by_record = true;
+        } else {
+            unpaired_frames.push(*id);
+        }
+    }
+    let mut basis = Vec::new();
+    if by_reconstruct {
+        basis.push("a camera named cam_<id> is the one r2g reconstruct built from source frame <id>");
+    }
+    if by_record {
+        basis.push("a source frame records the name of the camera that took it (r2g_camera), and the gym has a camera of that name");
+    }
+    let unpaired_cameras = if pairs.is_empty() { gym.iter().take(max.max(1)).cloned().collect() } else { Vec::new() };
+    let basis = if pairs.is_empty() {
+        "Which gym camera corresponds to which source frame is not known: no camera of the gym is named after a \
+         source frame (cam_<id>, as r2g reconstruct names them) or carries the camera name a frame records. The \
+         gym's cameras are shown unpaired; judge the viewpoint from the best match you can see and say which \
+         pairing you used."
+            .to_string()
+    } else {
+        let mut b = format!("Paired because {}.", basis.join("; and "));
+        if !unpaired_frames.is_empty() {
+            b += &format!(
+                " The gym has no camera for source frame(s) {}.",
+                unpaired_frames.iter().map(u64::to_string).collect::<Vec<_>>().join(", ")
+            );
+        }
+        b
+    };
+    Viewpoints { pairs, unpaired_cameras, unpaired_frames, basis }
+}
+
+/// Relabels the at-rest images of the gym's own cameras with the source frame each stands for.
+fn label_rest(engine: Engine, set: Vec<Image>, vp: &Viewpoints) -> Vec<Image> {
+    set.into_iter()
+        .map(|mut im| {
+            let cam = im.camera.clone().unwrap_or_else(|| "(unnamed)".into());
+            let ids: Vec<String> = vp.pairs.iter().filter(|p| p.0 == cam).map(|p| p.1.to_string()).collect();
+            im.label = format!(
+                "{} image of the gym's own camera {cam} at rest, {}",
+                engine.name(),
+                if ids.is_empty() {
+                    "not paired with a source frame".to_string()
+                } else {
+                    format!("the view of source frame {}", ids.join(", "))
+                }
+            );
+            im
+        })
+        .collect()
 }
 
 fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
@@ -436,16 +657,19 @@ fn failed_checks(v: &Value) -> Vec<String> {
     out
 }
 
-/// Physical failures the native verdict measured: penetration beyond the limits (at the start,
-/// at any instant, or persistent) and objects that do not rest when left alone.
+/// Physical failures the native verdict measured, as the paper's override means them: things
+/// inside each other beyond the task's limit at the start (`initial_penetration`) or for longer
+/// than a contact lasts (the evaluator's `no_persistent_penetration`). A brief overlap
+/// (`worst_penetration`) or an object still drifting (`settles_at_rest`) fails the gate but is
+/// not, on its own, a confirmed failure that breaks the execution; the model sees those checks
+/// and may report one as such.
 pub fn physical_failures(v: &Value) -> Vec<String> {
     let mut out = Vec::new();
     let checks = [("", &v["checks"]), ("evaluation.", &v["evaluation"]["checks"])];
     for (prefix, checks) in checks {
         let Some(m) = checks.as_object() else { continue };
         for (k, c) in m {
-            let physical = matches!(k.as_str(), "initial_penetration" | "worst_penetration" | "settles_at_rest")
-                || k.starts_with("no_persistent_penetration");
+            let physical = k == "initial_penetration" || k.starts_with("no_persistent_penetration");
             if physical && c["pass"] == false {
                 out.push(format!("{prefix}{k} failed: {}", c["value"]));
             }
@@ -488,21 +712,27 @@ fn instants(v: &Value) -> Vec<f64> {
 
 struct SourceFrames {
     dir: PathBuf,
-    ids: Vec<u64>,
-    /// A `scene_camera.json` holding only the chosen ids, for the renderers.
-    cameras_file: PathBuf,
+    /// The chosen images: id, and its key in scene_camera.json.
+    frames: Vec<(u64, String)>,
+    /// The chosen images' entries of scene_camera.json, by key.
     cameras: Map<String, Value>,
 }
 
 impl SourceFrames {
-    fn image(&self, id: u64) -> Result<Image, String> {
+    fn image(&self, (id, key): &(u64, String)) -> Result<Image, String> {
         let file = self.dir.join("rgb").join(format!("{id:06}.png"));
         let png = std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))?;
         if !png.starts_with(b"\x89PNG\r\n\x1a\n") {
             return Err(format!("{} is not a PNG", file.display()));
         }
-        let cam = &self.cameras[&id.to_string()];
-        Ok(Image { label: format!("Source frame {id} ({})", camera_words(cam)), png, file })
+        let cam = &self.cameras[key];
+        Ok(Image {
+            label: format!("Source frame {id} ({})", camera_words(cam)),
+            png,
+            file,
+            id: Some(*id),
+            camera: cam["r2g_camera"].as_str().map(str::to_string),
+        })
     }
 }
 
@@ -559,9 +789,13 @@ fn source_frames(gym_dir: &Path, o: &Options) -> Result<SourceFrames, String> {
     let text = std::fs::read_to_string(&file)
         .map_err(|e| format!("the source frames {}: {}: {e}", dir.display(), file.display()))?;
     let all: Map<String, Value> = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", file.display()))?;
-    let mut ids: Vec<u64> = all
+    let mut ids: Vec<(u64, String)> = all
         .keys()
-        .map(|k| k.parse::<u64>().map_err(|_| format!("{}: image id '{k}' is not a number", file.display())))
+        .map(|k| {
+            k.parse::<u64>()
+                .map(|id| (id, k.clone()))
+                .map_err(|_| format!("{}: image id '{k}' is not a number", file.display()))
+        })
         .collect::<Result<_, _>>()?;
     ids.sort_unstable();
     if ids.is_empty() {
@@ -569,21 +803,15 @@ fn source_frames(gym_dir: &Path, o: &Options) -> Result<SourceFrames, String> {
     }
     // Evenly spread over the ids, the first and the last included.
     let n = o.max_frames.clamp(1, ids.len());
-    let chosen: Vec<u64> = if n == 1 {
-        vec![ids[0]]
+    let chosen: Vec<(u64, String)> = if n == 1 {
+        vec![ids[0].clone()]
     } else {
-        let mut c: Vec<u64> = (0..n).map(|i| ids[i * (ids.len() - 1) / (n - 1)]).collect();
+        let mut c: Vec<(u64, String)> = (0..n).map(|i| ids[i * (ids.len() - 1) / (n - 1)].clone()).collect();
         c.dedup();
         c
     };
-    let cameras: Map<String, Value> = chosen.iter().map(|id| (id.to_string(), all[&id.to_string()].clone())).collect();
-    let cameras_file = o.out.join("evidence").join("source_scene_camera.json");
-    write_atomic(
-        &cameras_file,
-        &serde_json::to_vec_pretty(&Value::Object(cameras.clone())).map_err(|e| e.to_string())?,
-    )
-    .map_err(|e| format!("{e:#}"))?;
-    Ok(SourceFrames { dir, ids: chosen, cameras_file, cameras })
+    let cameras: Map<String, Value> = chosen.iter().map(|(_, k)| (k.clone(), all[k].clone())).collect();
+    Ok(SourceFrames { dir, frames: chosen, cameras })
 }
 
 /// Renders one set and reads its images back, or says why there are none.
@@ -609,7 +837,13 @@ fn read_bop(engine: Engine, dir: &Path) -> ImageSet {
         if !png.starts_with(b"\x89PNG\r\n\x1a\n") {
             return Err(format!("{} is not a PNG", f.display()));
         }
-        out.push(Image { label: format!("{} image {id} ({})", engine.name(), camera_words(&cam)), png, file: f });
+        out.push(Image {
+            label: format!("{} image {id} ({})", engine.name(), camera_words(&cam)),
+            png,
+            file: f,
+            id: None,
+            camera: cam["r2g_camera"].as_str().map(str::to_string),
+        });
     }
     if out.is_empty() {
         return Err(format!("{} lists no images", file.display()));
@@ -647,8 +881,8 @@ fn header(
     let mut t = format!("# Gym `{}`\n\nTask: {}\n\n", scene.name, scene.task.instruction);
     t += match source {
         Ok(s) => format!(
-            "Reference: {} frame(s) of the real scene (BOP layout, {}); the gym was reconstructed from them.\n",
-            s.ids.len(),
+            "Reference: {} frame(s) of the scene the gym should reproduce (BOP layout, {}).\n",
+            s.frames.len(),
             s.dir.display()
         ),
         Err(_) => "Reference: no source frames. The scene specification below is the reference; the rendered \
@@ -1060,16 +1294,118 @@ mod tests {
     }
 
     #[test]
-    fn native_penetration_and_unrest_are_physical_failures() {
+    fn only_initial_and_persistent_penetration_are_native_physical_failures() {
         let v = json!({"checks": {"worst_penetration": {"pass": false, "value": {"deepest_m": 0.01}},
+                                  "initial_penetration": {"pass": false, "value": {"deepest_m": 0.008}},
                                   "task_success": {"pass": false, "value": {}},
-                                  "settles_at_rest": {"pass": true, "value": {}}},
+                                  "settles_at_rest": {"pass": false, "value": {}}},
                        "evaluation": {"checks": {"no_persistent_penetration": {"pass": false, "value": {}}}}});
         let f = physical_failures(&v);
         assert_eq!(f.len(), 2, "{f:?}");
-        assert!(f[0].starts_with("worst_penetration failed"));
-        assert!(f[1].starts_with("evaluation.no_persistent_penetration failed"));
+        assert!(f[0].starts_with("initial_penetration failed"), "{f:?}");
+        assert!(f[1].starts_with("evaluation.no_persistent_penetration failed"), "{f:?}");
+        // A brief overlap or drift alone fails the gate but does not trigger the override.
+        let v = json!({"checks": {"worst_penetration": {"pass": false}, "settles_at_rest": {"pass": false},
+                                  "initial_penetration": {"pass": true}}});
+        assert!(physical_failures(&v).is_empty());
         assert!(physical_failures(&json!({"checks": {"task_success": {"pass": false}}})).is_empty());
+    }
+
+    fn graded(af: [f64; 6], tc: [f64; 3]) -> Answer {
+        Answer {
+            ca_mujoco: Some(40.0),
+            ca_blender: Some(35.0),
+            viewpoint: Some(80.0),
+            af_parts: af.to_vec(),
+            wrong_goal: false,
+            non_equivalent: false,
+            tc_parts: tc.to_vec(),
+            physical_failure: false,
+            physical_failure_why: "none seen".into(),
+            value: Value::Null,
+        }
+    }
+
+    #[test]
+    fn the_scores_follow_every_rule() {
+        let a = graded([10.0, 20.0, 20.0, 15.0, 8.0, 10.0], [40.0, 30.0, 15.0]);
+        let s = scores(&a, false);
+        assert_eq!(s.content_alignment, Some(75.0));
+        assert!(!s.content_alignment_partial);
+        assert_eq!((s.action_fidelity_parts_sum, s.action_fidelity, s.action_fidelity_rule), (83.0, 83.0, None));
+        assert_eq!(s.task_completion, 85.0);
+        assert!((s.simulation_success - 83.0 * 85.0 / 100.0).abs() < 1e-9);
+        assert_eq!(s.simulation_success, s.simulation_success_before_override);
+        assert!(!s.overridden);
+
+        // wrong_goal: action fidelity 0, and so simulation success, whatever the parts say.
+        let s = scores(&Answer { wrong_goal: true, non_equivalent: true, ..a.clone() }, false);
+        assert_eq!((s.action_fidelity_parts_sum, s.action_fidelity), (83.0, 0.0));
+        assert!(s.action_fidelity_rule.unwrap().starts_with("wrong_goal"));
+        assert_eq!((s.simulation_success, s.task_completion), (0.0, 85.0));
+
+        // non_equivalent: capped at 40 when above, left alone when below.
+        let s = scores(&Answer { non_equivalent: true, ..a.clone() }, false);
+        assert_eq!(s.action_fidelity, 40.0);
+        assert!(s.action_fidelity_rule.unwrap().starts_with("non_equivalent"));
+        assert!((s.simulation_success - 40.0 * 85.0 / 100.0).abs() < 1e-9);
+        let low = graded([5.0, 10.0, 5.0, 5.0, 2.0, 5.0], [40.0, 40.0, 20.0]);
+        let s = scores(&Answer { non_equivalent: true, ..low }, false);
+        assert_eq!((s.action_fidelity, s.simulation_success), (32.0, 32.0));
+
+        // The override: from the native checks, or from the model; the figures before it stay.
+        for (native, model) in [(true, false), (false, true), (true, true)] {
+            let s = scores(&Answer { physical_failure: model, ..a.clone() }, native);
+            assert!(s.overridden);
+            assert_eq!(s.simulation_success, 0.0);
+            assert!((s.simulation_success_before_override - 70.55).abs() < 1e-9);
+            assert_eq!((s.action_fidelity, s.task_completion), (83.0, 85.0));
+        }
+
+        // One engine's part alone is reported as partial, with no total (and never doubled).
+        let s = scores(&Answer { ca_blender: None, ..a.clone() }, false);
+        assert_eq!((s.content_alignment, s.content_alignment_partial), (None, true));
+        assert!(s.content_alignment_basis.contains("MuJoCo part (0-50) stands alone"));
+        let s = scores(&Answer { ca_mujoco: None, ..a.clone() }, false);
+        assert_eq!((s.content_alignment, s.content_alignment_partial), (None, true));
+        assert!(s.content_alignment_basis.contains("Blender part (0-50) stands alone"));
+        let s = scores(&Answer { ca_mujoco: None, ca_blender: None, ..a }, false);
+        assert_eq!((s.content_alignment, s.content_alignment_partial), (None, false));
+    }
+
+    #[test]
+    fn gym_cameras_pair_with_the_source_frames_they_stand_for() {
+        let names = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        let frame = |id: u64, cam: Option<&str>| (id, id.to_string(), cam.map(str::to_string));
+        // A reconstructed gym: cam_<id> for each frame, whatever the frames record.
+        let vp = pair_viewpoints(
+            &names(&["cam_0", "cam_4", "cam_9"]),
+            &[frame(0, Some("agentview")), frame(4, None), frame(7, None)],
+            3,
+        );
+        assert_eq!(vp.pairs, vec![("cam_0".to_string(), 0), ("cam_4".to_string(), 4)]);
+        assert_eq!(vp.unpaired_frames, vec![7]);
+        assert!(vp.unpaired_cameras.is_empty());
+        assert_eq!(vp.cameras(), names(&["cam_0", "cam_4"]));
+        assert!(vp.basis.contains("r2g reconstruct") && vp.basis.contains("no camera for source frame(s) 7"));
+        // A key written with leading zeros still pairs with cam_<id>.
+        let vp = pair_viewpoints(&names(&["cam_3"]), &[(3, "000003".into(), None)], 3);
+        assert_eq!(vp.pairs, vec![("cam_3".to_string(), 3)]);
+        // Frames that record their camera's name pair with the gym camera of that name.
+        let vp = pair_viewpoints(
+            &names(&["agentview", "wrist"]),
+            &[frame(0, Some("agentview")), frame(1, Some("agentview")), frame(2, Some("wrist"))],
+            3,
+        );
+        assert_eq!(vp.pairs.len(), 3);
+        assert_eq!(vp.cameras(), names(&["agentview", "wrist"]));
+        assert!(vp.basis.contains("r2g_camera"));
+        // Nothing corresponds: the gym's cameras go unpaired (at most `max`), and the basis says so.
+        let vp = pair_viewpoints(&names(&["front", "side", "top"]), &[frame(0, Some("agentview")), frame(1, None)], 2);
+        assert!(vp.pairs.is_empty());
+        assert_eq!(vp.unpaired_cameras, names(&["front", "side"]));
+        assert_eq!(vp.unpaired_frames, vec![0, 1]);
+        assert!(vp.basis.contains("not known") && vp.basis.contains("unpaired"));
     }
 
     #[test]
