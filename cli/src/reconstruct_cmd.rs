@@ -56,6 +56,66 @@ pub struct ReconstructArgs {
     /// Simulated seconds of gravity settling before each render.
     #[arg(long, default_value_t = 1.0)]
     pub settle_s: f64,
+    /// Optional: ask a model for each fitted object's name and primitive (box, cylinder, sphere,
+    /// bowl, mesh), sending the source images and the fitted objects as text. An endpoint TOML
+    /// file (agent-host/endpoints/), "record:<toml>", "replay:<cassette.jsonl>" or
+    /// "scripted:<answers.json>" (the scripted server on loopback: mechanics only). Off by
+    /// default: without it, names and shapes come from the frames alone.
+    #[arg(long)]
+    pub llm: Option<String>,
+    /// Wire format for `--llm scripted:…`: openai or anthropic.
+    #[arg(long, default_value = "openai")]
+    pub provider: String,
+}
+
+const MODEL_SYSTEM: &str = "You label the objects of a table-top scene that was reconstructed from camera \
+frames for a robot simulator. You receive the camera images and a JSON list of the objects the reconstruction \
+fitted, each with an id, a provisional name, the primitive it was fitted as, its size, position (metres, robot \
+base frame: x forward, y left, z up) and colour. For each listed object, say what it is and which primitive \
+represents it best for grasping and physics: box, cylinder (upright), sphere, bowl (an open round container) \
+or mesh (the convex hull of its points, for anything else). Use only the ids you were given: never add an \
+object, never merge or split objects. Answer with strict JSON only, no prose and no code fence: \
+{\"objects\": [{\"id\": \"o1\", \"name\": \"lower_case_name\", \"primitive\": \"box\"}]}. Names are short \
+lower-case identifiers (letters, digits, underscores), one per object, all different.";
+
+/// The model's answer to the labelling request: asks the endpoint with the fitted objects and the
+/// source images, and writes {text, model, source, provider, usage} to `to` for the fit step,
+/// which checks and applies it.
+fn ask_model(
+    llm: &str,
+    provider: &str,
+    frames: &Path,
+    fitted: &serde_json::Value,
+    work: &Path,
+    to: &Path,
+) -> anyhow::Result<()> {
+    use agent_host::llm::{Client, Message, Part, Role};
+    let objects = serde_json::to_string_pretty(&fitted["for_model"])?;
+    let mut parts = vec![Part::Text(format!(
+        "The fitted objects (ids o1..o{}):\n{objects}\n\nThe source images follow, one per camera.",
+        fitted["for_model"].as_array().map(|a| a.len()).unwrap_or(0)
+    ))];
+    let mut pngs: Vec<PathBuf> = std::fs::read_dir(frames.join("rgb"))
+        .with_context(|| format!("{}", frames.join("rgb").display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().and_then(|x| x.to_str()) == Some("png"))
+        .collect();
+    pngs.sort();
+    for p in pngs.iter().take(4) {
+        parts.push(Part::Text(format!("Image {}:", p.file_name().unwrap_or_default().to_string_lossy())));
+        parts.push(Part::Png(std::fs::read(p).with_context(|| format!("{}", p.display()))?));
+    }
+    let (endpoint, _scripted, source) = agent_host::session::endpoint(llm, provider, "reconstruct", None, work)?;
+    let client = Client::new(endpoint.clone())?;
+    eprintln!("r2g reconstruct: asking {} ({}, {source}) for names and primitives", endpoint.model, endpoint.base_url);
+    let c = client
+        .complete(MODEL_SYSTEM, &[Message { role: Role::User, parts }])
+        .with_context(|| format!("the call to the model endpoint {} failed", endpoint.base_url))?;
+    let rec = json!({"text": c.text, "model": endpoint.model, "source": source, "provider": endpoint.provider,
+                     "usage": {"input": c.usage.input, "output": c.usage.output}, "truncated": c.truncated,
+                     "mechanics_only": source == "scripted"});
+    std::fs::write(to, serde_json::to_vec(&rec)?)?;
+    Ok(())
 }
 
 /// The interpreter: `$R2G_PYTHON`, else the checkout's `.venv/bin/python`.
@@ -141,6 +201,80 @@ fn settle(scene_path: &Path, seconds: f64) -> anyhow::Result<Vec<(String, f64)>>
     Ok(moved)
 }
 
+/// The demonstration copied into the gym (`demo.csv`), re-anchored when the fit step found a
+/// `demonstration_scene`: every entity of that scene is paired with a reconstructed object (by
+/// name, else the nearest; the `anchor` step), its move measured, and the demonstration adapted
+/// by `real2sim::augment::reanchor` (the adaptation `r2g augment` uses). Returns the line to
+/// print and the record for reconstruction.json.
+fn demonstration(
+    fitted: &serde_json::Value,
+    stage: &Path,
+    scene_path: &Path,
+    work: &Path,
+) -> anyhow::Result<(String, serde_json::Value)> {
+    let Some(src) = fitted["demonstration_scene"].as_str() else {
+        return Ok((
+            "copied unchanged: the task file names no demonstration_scene (the scene it was recorded in), so it \
+             is not re-anchored to the reconstructed objects; if they stand elsewhere than where it was recorded, it \
+             will miss them"
+                .into(),
+            json!({"status": "copied", "reanchored": false,
+                   "why": "the task file names no demonstration_scene to measure the objects' moves from"}),
+        ));
+    };
+    let s = |p: &Path| p.display().to_string();
+    let anchor = step(&["anchor".into(), "--out".into(), s(stage), "--source-scene".into(), src.into()])?;
+    let (demo, _) = real2sim::augment::Demonstration::recorded_in(Path::new(src), &work.join("demonstration_gate"))
+        .with_context(|| format!("re-anchoring the demonstration recorded in {src}"))?;
+    let mut moves = std::collections::BTreeMap::new();
+    for m in anchor["moves"].as_array().into_iter().flatten() {
+        let v3 = |k: &str| -> anyhow::Result<[f64; 3]> {
+            let a: Vec<f64> = m[k].as_array().into_iter().flatten().filter_map(|x| x.as_f64()).collect();
+            a.try_into().map_err(|_| anyhow::anyhow!("anchor step: {k} of {} is not 3 numbers", m["entity"]))
+        };
+        let entity = m["entity"].as_str().unwrap_or_default().to_string();
+        let yaw = m["yaw_deg"].as_f64().unwrap_or(0.0).to_radians();
+        moves.insert(entity, real2sim::augment::planar_move(v3("from_m")?, v3("to_m")?, yaw));
+    }
+    let rows = if moves.is_empty() {
+        demo.rows.clone()
+    } else {
+        real2sim::augment::reanchor(&demo, &moves, scene_path)
+            .with_context(|| format!("re-anchoring the demonstration recorded in {src} to the reconstruction"))?
+    };
+    let re_solved = rows.iter().zip(&demo.rows).filter(|(a, b)| a != b).count();
+    let tmp = stage.join(".demo.csv.tmp");
+    lockstep::write_demo(&tmp, &rows)?;
+    std::fs::rename(&tmp, stage.join("demo.csv"))?;
+    let entities: Vec<&str> =
+        anchor["moves"].as_array().into_iter().flatten().filter_map(|m| m["entity"].as_str()).collect();
+    let note = if moves.is_empty() {
+        format!(
+            "recorded in {src}; every paired object stands where it stood there (within 1.5 mm, 1 deg): rows unchanged"
+        )
+    } else {
+        format!(
+            "re-anchored from {src}: {} moved ({}), {re_solved} of {} rows re-solved",
+            entities.len(),
+            entities.join(", "),
+            rows.len()
+        )
+    };
+    let record = json!({
+        "status": if moves.is_empty() { "unchanged" } else { "re-anchored" },
+        "reanchored": !moves.is_empty(),
+        "source_scene": src,
+        "moves": anchor["moves"],
+        "unchanged": anchor["unchanged"],
+        "unmatched": anchor["unmatched"],
+        "unpaired_reconstructed": anchor["unpaired_reconstructed"],
+        "anchors": demo.anchors.iter().map(|a| json!({"row": a.row, "entity": a.entity})).collect::<Vec<_>>(),
+        "rows": rows.len(),
+        "rows_re_solved": re_solved,
+    });
+    Ok((note, record))
+}
+
 pub fn run(a: ReconstructArgs) -> anyhow::Result<i32> {
     let started = Instant::now();
     // The robot, as `r2g kin` takes it: a name or a URDF file.
@@ -196,7 +330,28 @@ pub fn run(a: ReconstructArgs) -> anyhow::Result<i32> {
     if let Some(u) = &a.geometry_url {
         fit.extend(["--geometry-url".into(), u.clone()]);
     }
-    let fitted = step(&fit)?;
+    let mut fitted = step(&fit)?;
+    if let Some(llm) = &a.llm {
+        if llm.starts_with("scripted") {
+            eprintln!(
+                "r2g reconstruct: mechanics only: --llm {llm} answers with a synthetic answer written in advance"
+            );
+        }
+        // Ask about the objects as fitted, then fit again from the frames with the answer applied
+        // (the fit is deterministic: the same objects, the same ids).
+        let answer = work.0.join("model_answer.json");
+        ask_model(llm, &a.provider, &a.frames, &fitted, &work.0, &answer)?;
+        for e in std::fs::read_dir(&staging.dir)?.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                std::fs::remove_dir_all(&p)?
+            } else {
+                std::fs::remove_file(&p)?
+            }
+        }
+        fit.extend(["--llm-answer".into(), s(&answer)]);
+        fitted = step(&fit)?;
+    }
     let scene_path = staging.dir.join("scene.toml");
     // The capture pose must be one the robot can take.
     let scene = sim_host::Scene::load(&scene_path).with_context(|| format!("{}", scene_path.display()))?;
@@ -242,6 +397,15 @@ pub fn run(a: ReconstructArgs) -> anyhow::Result<i32> {
     let rep_path = staging.dir.join("reconstruction.json");
     let mut rep: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&rep_path)?)?;
     rep["settling"] = json!(settling);
+    // The demonstration, re-anchored to the reconstructed objects when the task file says which
+    // scene it was recorded in.
+    let demo_note = if fitted["demonstration"].as_bool() == Some(true) {
+        let (note, record) = demonstration(&fitted, &staging.dir, &scene_path, &work.0)?;
+        rep["demonstration"] = record;
+        Some(note)
+    } else {
+        None
+    };
     rep["seconds"]["total"] = json!((started.elapsed().as_secs_f64() * 1e3).round() / 1e3);
     std::fs::write(&rep_path, serde_json::to_vec_pretty(&rep)?)?;
     // The gym as it will be used: it loads and runs.
@@ -249,6 +413,16 @@ pub fn run(a: ReconstructArgs) -> anyhow::Result<i32> {
     lockstep::Episode::new(&scene_path, 0).context("the reconstructed scene does not compile")?;
     let task_empty = scene.task.success.is_empty();
     let out = staging.commit()?;
+    for sus in rep["spurious_suspects"].as_array().into_iter().flatten() {
+        println!(
+            "suspect: {}: {}",
+            sus["name"].as_str().unwrap_or("?"),
+            sus["why"].as_str().unwrap_or("likely spurious")
+        );
+    }
+    if let Some(note) = &demo_note {
+        println!("demonstration: {note}");
+    }
     if task_empty {
         println!(
             "task: empty: no success rules were given (--task FILE with [task] success rules); the gym has {} and cannot be judged until rules are added",
@@ -266,6 +440,9 @@ pub fn run(a: ReconstructArgs) -> anyhow::Result<i32> {
             "min_iou": last_round["min_iou"],
             "task_empty": task_empty,
             "warnings": fitted["warnings"],
+            "demonstration": rep["demonstration"]["status"],
+            "model": rep["model"]["names_applied"],
+            "spurious_suspects": rep["spurious_suspects"],
             "seconds": (started.elapsed().as_secs_f64() * 1e3).round() / 1e3,
         })
     );

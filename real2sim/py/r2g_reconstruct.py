@@ -276,8 +276,9 @@ def robot_pixels(frames: list, urdf: str, r2g: str, work: Path) -> dict:
 # Fitting
 # --------------------------------------------------------------------------------------------
 
-def fit_object(o: Any, plane: Any, others: dict) -> dict:
-    """One segmented object -> an object spec (dict), with the fit's evidence under "_fit"."""
+def fit_object(o: Any, plane: Any, others: dict, force: Optional[str] = None) -> dict:
+    """One segmented object -> an object spec (dict), with the fit's evidence under "_fit".
+    `force` (one of PRIMITIVES) overrides the shape the evidence picks (the model's choice)."""
     P = o.points
     h = plane.distance(P)
     xy = P[:, :2]
@@ -308,6 +309,10 @@ def fit_object(o: Any, plane: Any, others: dict) -> dict:
                 shape = "sphere"
     elif fill >= 0.85:
         shape = "box"
+    if force is not None:
+        evidence["evidence_chose"] = shape
+        shape = force
+        evidence["chosen_by"] = "model"
     evidence["chosen"] = shape
     cz_base = plane_z(plane, *(circ_c if shape in ("cylinder", "sphere", "bowl") else centre2))
     spec: dict = {}
@@ -404,14 +409,20 @@ def colour_of(o: Any, plane: Any) -> list:
 # Task
 # --------------------------------------------------------------------------------------------
 
-TASK_KEYS = {"instruction", "demonstration", "demonstration_hz", "success", "max_penetration_m", "settle_s"}
+TASK_KEYS = {"instruction", "demonstration", "demonstration_hz", "success", "max_penetration_m", "settle_s",
+             "demonstration_scene"}
+"""[task] keys of a task file: scene.toml's, plus `demonstration_scene` (the scene.toml the
+demonstration was recorded in; with it the demonstration is re-anchored to the reconstructed
+objects, and the key is not written into the gym)."""
 
 
-def read_task(path: Optional[str], instruction: Optional[str]) -> tuple[dict, dict, Optional[Path]]:
-    """(task table, names table, demonstration file) from --task and --instruction."""
+def read_task(path: Optional[str], instruction: Optional[str]) -> tuple[dict, dict, Optional[Path], Optional[Path]]:
+    """(task table, names table, demonstration file, the scene it was recorded in) from --task
+    and --instruction."""
     task: dict = {}
     names: dict = {}
     demo = None
+    demo_scene = None
     if path:
         p = Path(path)
         try:
@@ -433,15 +444,109 @@ def read_task(path: Optional[str], instruction: Optional[str]) -> tuple[dict, di
             if not demo.is_file():
                 raise FramesError(f"task file {p}: demonstration {task['demonstration']} does not exist ({demo})")
             task["demonstration"] = "demo.csv"
+        if "demonstration_scene" in task:
+            if demo is None:
+                raise FramesError(f"task file {p}: demonstration_scene is given without a demonstration")
+            v = task.pop("demonstration_scene")
+            demo_scene = (p.parent / str(v)).resolve()
+            if demo_scene.is_dir():
+                demo_scene = demo_scene / "scene.toml"
+            if not demo_scene.is_file():
+                raise FramesError(f"task file {p}: demonstration_scene {v} does not exist ({demo_scene})")
+            try:
+                st = tomllib.loads(demo_scene.read_text()).get("task", {})
+            except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+                raise FramesError(f"task file {p}: demonstration_scene {demo_scene} is not valid TOML: {e}") from None
+            own = (demo_scene.parent / st["demonstration"]).resolve() if st.get("demonstration") else None
+            if own is None or not own.is_file() or own.read_bytes() != demo.read_bytes():
+                raise FramesError(f"task file {p}: demonstration_scene {demo_scene} does not hold the same "
+                                  f"demonstration ({own or 'none'}) as the task's {demo}: the re-anchoring replays "
+                                  "the demonstration in the scene it was recorded in")
         if not isinstance(task.get("success", []), list):
             raise FramesError(f"task file {p}: success must be a list of rules")
     if instruction:
         task["instruction"] = instruction
-    return task, names, demo
+    return task, names, demo, demo_scene
+
+
+def _span(o: dict, plane: Any) -> tuple[float, float]:
+    """An object's vertical extent in the world (bottom, top), from its fit."""
+    f = o["_fit"]
+    z0 = plane_z(plane, *o["position_m"][:2])
+    return z0 + f["bottom_m"], z0 + f["top_m"]
+
+
+PRIMITIVES = ("box", "cylinder", "sphere", "bowl", "mesh")
+NAME_CHARS = set("abcdefghijklmnopqrstuvwxyz0123456789_")
+
+
+def read_model_answer(text: str, n: int) -> dict:
+    """The model's answer -> {"o<k>": {"name": ..., "primitive": ...}}, checked strictly: a JSON
+    object {"objects": [{"id", "name"?, "primitive"?}]}, ids among o1..o<n> (the model may not
+    invent objects), each once, primitives among PRIMITIVES, names lower-case identifiers."""
+    body = text.strip()
+    if body.startswith("```"):
+        body = body.split("\n", 1)[1] if "\n" in body else ""
+        body = body.rsplit("```", 1)[0]
+    try:
+        doc = json.loads(body)
+    except ValueError as e:
+        raise FramesError(f"the model's answer is not JSON ({e}); it began: {text[:200]!r}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("objects"), list):
+        raise FramesError(f"the model's answer has no \"objects\" list; it began: {text[:200]!r}")
+    ids = [f"o{k + 1}" for k in range(n)]
+    out: dict = {}
+    names: dict = {}
+    for i, e in enumerate(doc["objects"]):
+        if not isinstance(e, dict) or not isinstance(e.get("id"), str):
+            raise FramesError(f"the model's answer: objects[{i}] is not an object with an \"id\" string")
+        bad = set(e) - {"id", "name", "primitive", "why"}
+        if bad:
+            raise FramesError(f"the model's answer: objects[{i}] has unknown key(s) {sorted(bad)}")
+        oid = e["id"]
+        if oid not in ids:
+            raise FramesError(f"the model's answer names object id {oid!r}, which the reconstruction does not have "
+                              f"(ids: {', '.join(ids)}); objects are never added from the model's answer")
+        if oid in out:
+            raise FramesError(f"the model's answer lists object {oid} twice")
+        c: dict = {}
+        prim = e.get("primitive")
+        if prim is not None:
+            if prim not in PRIMITIVES:
+                raise FramesError(f"the model's answer: object {oid}: primitive {prim!r} is not one of "
+                                  f"{', '.join(PRIMITIVES)}")
+            c["primitive"] = prim
+        nm = e.get("name")
+        if nm is not None:
+            if (not isinstance(nm, str) or not nm or len(nm) > 40 or not set(nm) <= NAME_CHARS
+                    or not nm[0].isalpha()):
+                raise FramesError(f"the model's answer: object {oid}: name {nm!r} is not a lower-case identifier "
+                                  "(a-z, 0-9, _; a letter first; at most 40)")
+            if nm in ("table", "robot") or nm in names:
+                raise FramesError(f"the model's answer: object {oid}: name {nm!r} is "
+                                  + ("reserved" if nm in ("table", "robot") else f"also given to {names[nm]}"))
+            names[nm] = oid
+            c["name"] = nm
+        out[oid] = c
+    return out
+
+
+def apply_model_names(choices: dict, objects: list, names: dict) -> list:
+    """Gives objects the model's names, except where the task file's [names] will name them
+    (its names are the ones its rules use; applied after this). Returns [id, old, new]."""
+    done = []
+    for k, o in enumerate(objects):
+        nm = (choices.get(f"o{k + 1}") or {}).get("name")
+        if nm and nm not in names:
+            done.append([f"o{k + 1}", o["name"], nm])
+            o["name"] = nm
+    return done
 
 
 def apply_names(names: dict, objects: list, scene: Any, clusters: list, where: str) -> None:
-    """Renames objects as [names] asks: name = "colour shape" prompt or [x, y] (m, base frame)."""
+    """Renames objects as [names] asks: name = "colour shape" prompt, [x, y] or [x, y, z] (m,
+    base frame)."""
+    plane = scene.plane
     taken: dict = {}
     fixed: dict = {}
     for new, how in names.items():
@@ -462,8 +567,15 @@ def apply_names(names: dict, objects: list, scene: Any, clusters: list, where: s
             if idx is None:
                 raise FramesError(f"{where}: [names] {new} = {how!r} matches no reconstructed object")
         elif isinstance(how, list) and len(how) in (2, 3) and all(isinstance(v, (int, float)) for v in how):
+            # [x, y]: the nearest object horizontally. [x, y, z]: z also counts, as its distance
+            # from the object's vertical span, so a plate standing in its holder and the holder
+            # under it (the same x, y) are told apart.
             d = [math.dist(how[:2], o["position_m"][:2]) for o in objects]
-            idx = int(np.argmin(d)) if d else None
+            dz = [0.0] * len(objects)
+            if len(how) == 3:
+                dz = [max(0.0, zb - how[2], how[2] - zt) for zb, zt in (_span(o, plane) for o in objects)]
+            score = [math.hypot(a, b) for a, b in zip(d, dz)]
+            idx = int(np.argmin(score)) if score else None
             if idx is None or d[idx] > 0.05:
                 raise FramesError(f"{where}: [names] {new} = {how}: no reconstructed object within 5 cm")
         else:
@@ -488,6 +600,13 @@ def check_rules(task: dict, objects: list) -> None:
                 raise FramesError(f"task rule {i + 1} ({rule.get('kind')}) names {key} '{v}', which the reconstruction "
                                   f"does not have (objects: {', '.join(o['name'] for o in objects) or 'none'}); "
                                   "name objects with [names] in the task file")
+        c = rule.get("container")
+        if isinstance(c, str) and c not in ("table", "robot"):
+            o = next(o for o in objects if o["name"] == c)
+            if "cavity_min_m" not in o:
+                raise FramesError(f"task rule {i + 1} ({rule.get('kind')}) needs container '{c}' to be hollow, but the "
+                                  f"reconstruction made it a solid {o['_kind']} (only round bowls get a cavity without "
+                                  "the optional model)")
         if rule.get("kind") == "joint":
             raise FramesError(f"task rule {i + 1} (joint) needs an articulated fixture; reconstructed fixtures are static "
                               "objects (doors and drawers from the optional model: not yet)")
@@ -506,7 +625,7 @@ def cmd_fit(a: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     stage, work = Path(a.out), Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
-    task, names, demo = read_task(a.task, a.instruction)
+    task, names, demo, demo_scene = read_task(a.task, a.instruction)
     frames = rio.read_frames(Path(a.frames), need_depth=not a.geometry_url)
     rio.read_joints(a.joints, frames)
     rio.fill_depth(frames, a.geometry_url)
@@ -524,6 +643,7 @@ def cmd_fit(a: argparse.Namespace) -> None:
                                    base_from_camera=f.base_from_camera,
                                    joint=f.joints if panda else None, gripper=f.gripper if panda else None))
     t_filter = time.perf_counter()
+    choices: dict = {}
     import warnings
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -541,13 +661,16 @@ def cmd_fit(a: argparse.Namespace) -> None:
     if not clusters:
         raise FramesError(f"no object found on the support plane in any of the {len(frames)} view(s) (empty masks "
                           "after removing the table and the robot)")
+    llm = json.loads(Path(a.llm_answer).read_text()) if a.llm_answer else None
+    if llm is not None:
+        choices = read_model_answer(llm["text"], len(clusters))
     # Supports first, so an object on another gets that one's top.
     order = sorted(range(len(clusters)), key=lambda i: (clusters[i].support not in (None, "plane"), i))
     tops: dict = {}
     fitted: dict = {}
     for i in order:
         o = clusters[i]
-        spec = fit_object(o, plane, tops)
+        spec = fit_object(o, plane, tops, force=(choices.get(f"o{i + 1}") or {}).get("primitive"))
         tops[o.id] = spec["_top"]
         fitted[i] = spec
     objects = []
@@ -585,10 +708,15 @@ def cmd_fit(a: argparse.Namespace) -> None:
             obj["_bowl"] = spec["_bowl"]
         obj["_cluster"] = int(o.id)
         objects.append(obj)
+    llm_named = apply_model_names(choices, objects, names)
     apply_names(names, objects, scene, clusters, a.task or "--task")
+    seen: dict = {}
+    for k, o in enumerate(objects):
+        if o["name"] in seen:
+            raise FramesError(f"objects o{seen[o['name']] + 1} and o{k + 1} would both be named {o['name']!r} "
+                              "(the model's names and the task file's [names] must not collide)")
+        seen[o["name"]] = k
     check_rules(task, objects)
-    if demo is not None and not task.get("success"):
-        pass
     # Table: the plane's points seen, widened to hold every object with 5 cm to spare.
     pts = []
     cols = []
@@ -657,12 +785,24 @@ def cmd_fit(a: argparse.Namespace) -> None:
                      "first_fit": {k: o.get(k) for k in ("size_m", "position_m", "quat_wxyz")}} for o in objects],
         "task": {"empty": not task.get("success"), "instruction": task.get("instruction", "")},
         "warnings": warn, "rounds": [],
+        "model": None if llm is None else {**{k: v for k, v in llm.items() if k != "text"}, "raw_answer": llm["text"],
+                                           "choices": choices, "names_applied": llm_named},
         "seconds": {"read": r(t_read - t0, 3), "robot_filter": r(t_filter - t_read, 3),
                     "segment_fit": r(time.perf_counter() - t_filter, 3)},
     }
     (stage / "reconstruction.json").write_text(json.dumps(report, indent=1))
     print(json.dumps({"objects": [o["name"] for o in objects], "kinds": [o["_kind"] for o in objects],
-                      "task_empty": not task.get("success"), "warnings": warn}))
+                      "for_model": [{"id": f"o{k + 1}", "name": o["name"], "primitive": o["_fit"]["chosen"],
+                                     "kind": o["_kind"], "size_m": o.get("size_m"),
+                                     "position_m": o["position_m"], "rgba": o["rgba"][:3],
+                                     "height_m": r(o["_fit"]["top_m"] - o["_fit"]["bottom_m"], 4),
+                                     "footprint_m": o["_fit"]["rect_m"], "footprint_fill": o["_fit"]["footprint_fill"],
+                                     "round_outline_residual": o["_fit"]["circle_residual"],
+                                     "hollow_top": o["_fit"]["hollow"], "static": o.get("free") is False}
+                                    for k, o in enumerate(objects)],
+                      "task_empty": not task.get("success"), "warnings": warn,
+                      "demonstration": demo is not None,
+                      "demonstration_scene": str(demo_scene) if demo_scene else None}))
 
 
 def write_scene(stage: Path, model: dict) -> None:
@@ -787,6 +927,8 @@ def cmd_gate(a: argparse.Namespace) -> None:
     rep["rounds"].append(rnd)
     rep["kept_round"] = best["round"] if best else a.round
     if a.last or converged:
+        kept_round = next((x for x in rep["rounds"] if x["round"] == rep["kept_round"]), rnd)
+        rep["spurious_suspects"] = spurious_suspects(kept_round["objects"])
         rep["objects_final"] = [{k: o.get(k) for k in ("name", "shape", "size_m", "position_m", "quat_wxyz", "rgba",
                                                         "mesh")} | {"kind": o["_kind"]} for o in model["objects"]]
     tmp = stage / ".reconstruction.json.tmp"
@@ -795,6 +937,23 @@ def cmd_gate(a: argparse.Namespace) -> None:
     kept = best if best is not None and regressed else rnd
     print(json.dumps({"round": a.round, "mean_iou": kept["mean_iou"], "min_iou": kept["min_iou"],
                       "corrections": len(rnd["corrections"]), "converged": converged}))
+
+
+SUSPECT_IOU = 0.3
+"""An object whose rendered silhouette overlaps its source mask less than this (weighted over the
+views) after the gate is reported as a likely spurious piece: a fit that reproduces nothing the
+frames show (a part of something else, such as a handle fitted as an object of its own)."""
+
+
+def spurious_suspects(figures: list) -> list:
+    """The objects of a round that are likely not objects of their own, each with the reason."""
+    out = []
+    for f in figures:
+        if f.get("iou") is not None and f["iou"] < SUSPECT_IOU:
+            out.append({"name": f["name"], "iou": f["iou"],
+                        "why": f"reprojection IoU {f['iou']:.2f} < {SUSPECT_IOU}: the fitted shape does not "
+                               "reproduce its pixels (likely a part of another object)"})
+    return out
 
 
 def correct(o: dict, views: list, plane: Any) -> dict:
@@ -841,6 +1000,85 @@ def correct(o: dict, views: list, plane: Any) -> dict:
     return out
 
 
+# --------------------------------------------------------------------------------------------
+# anchor: how each entity of the demonstration's scene moved into the reconstruction
+# --------------------------------------------------------------------------------------------
+
+ANCHOR_NEAREST_M = 0.10
+"""An entity of the demonstration's scene without a reconstructed object of its name is paired
+with the nearest unpaired reconstructed object within this horizontal distance."""
+ANCHOR_STILL_M = 0.0015
+ANCHOR_STILL_DEG = 1.0
+"""A pair closer than these is not re-anchored (the fit's own scatter)."""
+
+
+def _yaw_symmetry(e: dict) -> Optional[float]:
+    """The period of an entity's yaw as seen from the frames: a box's is a quarter turn when its
+    footprint is (near) square, else a half turn; round and hull shapes have none we can read."""
+    if e.get("shape") != "box" or e.get("parts"):
+        return None
+    sx, sy = e["size_m"][0], e["size_m"][1]
+    return math.pi / 2 if min(sx, sy) / max(sx, sy, 1e-9) > 0.9 else math.pi
+
+
+def anchor_moves(source_scene: Path, gym: Path) -> dict:
+    """Pairs every entity of the demonstration's scene (objects and fixtures) with a
+    reconstructed object (same name, else the nearest within ANCHOR_NEAREST_M) and measures its
+    move: the world bounding-box centre from the source to the reconstruction, and for a box
+    the yaw change within the box's symmetry."""
+    import r2g_reconstruct_eval as ev
+
+    src_doc = tomllib.loads(source_scene.read_text())
+    rec_doc = tomllib.loads((gym / "scene.toml").read_text())
+    src = []
+    for kind, items in (("object", src_doc.get("objects", [])), ("fixture", src_doc.get("fixtures", []))):
+        for e in items:
+            b = ev.entity_box(e, source_scene.parent, kind == "fixture")
+            if b is not None:
+                src.append((e, b))
+    rec = [(e, ev.entity_box(e, gym)) for e in rec_doc.get("objects", [])]
+    rec = [(e, b) for e, b in rec if b is not None]
+    pairs: dict = {}
+    used: set = set()
+    for i, (e, _) in enumerate(src):
+        j = next((j for j, (q, _) in enumerate(rec) if q["name"] == e["name"]), None)
+        if j is not None:
+            pairs[i] = (j, "name")
+            used.add(j)
+    cand = sorted((math.dist(b[0][:2], q[0][:2]), i, j) for i, (_, b) in enumerate(src) if i not in pairs
+                  for j, (_, q) in enumerate(rec) if j not in used)
+    for d, i, j in cand:
+        if d > ANCHOR_NEAREST_M or i in pairs or j in used:
+            continue
+        pairs[i] = (j, "nearest")
+        used.add(j)
+    moves, still, unmatched = [], [], []
+    for i, (e, b) in enumerate(src):
+        if i not in pairs:
+            unmatched.append(e["name"])
+            continue
+        j, by = pairs[i]
+        q, qb = rec[j]
+        dyaw = 0.0
+        period = _yaw_symmetry(e)
+        if period is not None and q.get("shape") == "box":
+            d = yaw_of(q.get("quat_wxyz", [1, 0, 0, 0])) - yaw_of(e.get("quat_wxyz", [1, 0, 0, 0]))
+            dyaw = (d + period / 2) % period - period / 2
+        t = (qb[0] - b[0]).tolist()
+        row = {"entity": e["name"], "to": q["name"], "by": by, "from_m": [r(v) for v in b[0]],
+               "to_m": [r(v) for v in qb[0]], "translation_m": [r(v) for v in t], "yaw_deg": r(math.degrees(dyaw), 3)}
+        if np.linalg.norm(t) < ANCHOR_STILL_M and abs(math.degrees(dyaw)) < ANCHOR_STILL_DEG:
+            still.append(row)
+        else:
+            moves.append(row)
+    return {"moves": moves, "unchanged": still, "unmatched": unmatched,
+            "unpaired_reconstructed": [rec[j][0]["name"] for j in range(len(rec)) if j not in used]}
+
+
+def cmd_anchor(a: argparse.Namespace) -> None:
+    print(json.dumps(anchor_moves(Path(a.source_scene), Path(a.out))))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -857,6 +1095,7 @@ def main() -> None:
     f.add_argument("--task")
     f.add_argument("--instruction")
     f.add_argument("--geometry-url")
+    f.add_argument("--llm-answer", help="JSON {text, model, source}: the model's answer to apply")
     g = sub.add_parser("gate")
     g.add_argument("--out", required=True)
     g.add_argument("--work", required=True)
@@ -864,9 +1103,12 @@ def main() -> None:
     g.add_argument("--round", type=int, required=True)
     g.add_argument("--last", action="store_true")
     g.add_argument("--iou-goal", type=float, default=0.9)
+    n = sub.add_parser("anchor")
+    n.add_argument("--out", required=True)
+    n.add_argument("--source-scene", required=True)
     a = ap.parse_args()
     try:
-        cmd_fit(a) if a.cmd == "fit" else cmd_gate(a)
+        {"fit": cmd_fit, "gate": cmd_gate, "anchor": cmd_anchor}[a.cmd](a)
     except FramesError as e:
         fail(str(e))
     except RuntimeError as e:

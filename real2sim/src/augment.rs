@@ -29,7 +29,9 @@
 //! object's scaled height below the TCP is kept), the rows between anchors take the change
 //! blended by path length (the first row never moves), and the moved rows are re-solved with IK
 //! under the joint limits and the scene's collision checks. Rows no anchor moves keep their
-//! joints.
+//! joints. For rigid moves this is public as [`reanchor`] (with [`Demonstration::recorded_in`]
+//! and [`planar_move`]); `r2g reconstruct` uses it to carry a demonstration to reconstructed
+//! objects.
 //!
 //! **A failed candidate is shrunk** toward its parent (every deviation halved, one distractor
 //! fewer) up to `shrink_tries` times before it is dropped.
@@ -273,14 +275,97 @@ impl Options {
     }
 }
 
+/// A demonstration with what its re-anchoring needs: the scene it was recorded in, its rows,
+/// the robot, the anchors of its motion (`events::anchors`, from the demonstration's native
+/// replay in that scene) and the TCP pose of every row.
+pub struct Demonstration {
+    /// The scene the demonstration was recorded in (where its anchors' entities stand).
+    pub scene: Scene,
+    /// The demonstration's rows: 7 joint angles (rad) and the gripper command.
+    pub rows: Vec<[f64; 8]>,
+    pub robot: RobotModel,
+    pub anchors: Vec<Anchor>,
+    /// TCP per row, world frame.
+    pub tcp_world: Vec<Isometry3<f64>>,
+    pub world_from_base: Isometry3<f64>,
+}
+
+impl Demonstration {
+    /// From a scene whose demonstration passed the gate: `pev` and `native` are what
+    /// [`validate::validate_native`] returned for `scene_path`.
+    fn from_native(scene_path: &Path, scene: Scene, pev: &Evidence, native: &crate::replay::Native) -> Result<Self> {
+        let rows = lockstep::read_demo(scene.task.demonstration.as_deref().ok_or_else(|| err("no demonstration"))?)?;
+        let row_at = |t: f64| native.row_at(t);
+        let anchors = events::anchors(&pev.native_events, &row_at);
+        let (robot, _) = runtime::scene_robot(scene_path)?;
+        let world_from_base = Isometry3::from_parts(
+            Translation3::new(
+                scene.robot.base_position_m[0],
+                scene.robot.base_position_m[1],
+                scene.robot.base_position_m[2],
+            ),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), scene.robot.base_yaw_rad),
+        );
+        let tcp_world = rows
+            .iter()
+            .map(|r| world_from_base * robot.kin.fk(&std::array::from_fn(|j| r[j]), robot.kin.tcp))
+            .collect();
+        Ok(Self { scene, rows, robot, anchors, tcp_world, world_from_base })
+    }
+
+    /// The demonstration of the gym at `scene_path`, with its anchors: the gym is validated
+    /// natively (the gate's replay, its evidence written under `out`) and must pass, since the
+    /// anchors come from the events of a successful run.
+    pub fn recorded_in(scene_path: &Path, out: &Path) -> Result<(Self, Evidence)> {
+        let scene = Scene::load(scene_path).map_err(|e| Error::Episode(e.into()))?;
+        let (pev, _, native) = validate::validate_native(scene_path, &validate::Options::new(out.to_path_buf()))?;
+        if !pev.success {
+            return Err(err(format!(
+                "the demonstration's own scene {} fails the gate ({}): its anchors cannot be trusted",
+                scene_path.display(),
+                failed_checks(&pev)
+            )));
+        }
+        Ok((Self::from_native(scene_path, scene, &pev, &native)?, pev))
+    }
+}
+
+/// Re-anchors a demonstration to entities that stand elsewhere: `moves` gives, per entity of
+/// the demonstration's scene (by its name there), the rigid move (world frame) that carries its
+/// recorded pose to its new one. Every anchor of the motion on a moved entity follows it, the
+/// rows between anchors take the change blended by path length (row 0 never moves), and the
+/// moved rows are re-solved by IK under the joint limits and the collision checks of the scene
+/// at `target_scene` (the scene the rows will run in). Rows that no anchor moves keep their
+/// joints. Entities absent from `moves` stay where they were. This is the adaptation
+/// `r2g augment` applies to every variant; `r2g reconstruct` uses it for a demonstration
+/// recorded in another arrangement of the reconstructed objects.
+pub fn reanchor(
+    demo: &Demonstration,
+    moves: &BTreeMap<String, Isometry3<f64>>,
+    target_scene: &Path,
+) -> Result<Vec<[f64; 8]>> {
+    let (_, safety) = runtime::scene_robot(target_scene)?;
+    let changes: BTreeMap<String, Change> =
+        moves.iter().map(|(k, m)| (k.clone(), Change { moved: *m, scale: None })).collect();
+    adapt(demo, &changes, &safety)
+        .map_err(|(row, why)| err(format!("the demonstration cannot follow: row {row}: {why}")))
+}
+
+/// The rigid move (world frame) that carries the point `from_m` to `to_m` and turns what is
+/// around it by `yaw_rad` about the vertical through it: an entity's move from its recorded
+/// reference point to its new one, in the form [`reanchor`] takes.
+pub fn planar_move(from_m: [f64; 3], to_m: [f64; 3], yaw_rad: f64) -> Isometry3<f64> {
+    Isometry3::translation(to_m[0], to_m[1], to_m[2])
+        * Isometry3::rotation(Vector3::z() * yaw_rad)
+        * Isometry3::translation(-from_m[0], -from_m[1], -from_m[2])
+}
+
 /// What the parent gives every variant.
 struct Parent {
     scene_path: PathBuf,
     dir_name: String,
-    scene: Scene,
-    rows: Vec<[f64; 8]>,
-    robot: RobotModel,
-    anchors: Vec<Anchor>,
+    /// The parent's scene, rows, robot, anchors and TCP path.
+    demo: Demonstration,
     source: Vec<events::SourceGrasp>,
     source_kind: String,
     /// The parent's native grasps: each variant must grasp as it did (`events.json`'s `native`).
@@ -289,9 +374,6 @@ struct Parent {
     object: String,
     /// A fixture the object starts in (a holder), moved along with it.
     carrier: Option<String>,
-    /// TCP per row, world frame.
-    tcp_world: Vec<Isometry3<f64>>,
-    world_from_base: Isometry3<f64>,
 }
 
 /// How an entity changes: a rigid move of its start pose, and for a scaled object its scale,
@@ -429,9 +511,10 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
     let staging = Staging::new(out)?;
     let mut t = gym::rebased_scene(&parent.scene_path, &staging.dir)?;
     // The parent's demonstration first: the scene must load for the placement draws.
-    lockstep::write_demo(&staging.dir.join("demo.csv"), &parent.rows)?;
+    lockstep::write_demo(&staging.dir.join("demo.csv"), &parent.demo.rows)?;
     let obj = parent.object.clone();
-    let spec = parent.scene.objects.iter().find(|o| o.name == obj).ok_or_else(|| err(format!("no object '{obj}'")))?;
+    let spec =
+        parent.demo.scene.objects.iter().find(|o| o.name == obj).ok_or_else(|| err(format!("no object '{obj}'")))?;
     let old_pose = gym::pose_wxyz(spec.position_m, spec.quat_wxyz);
     let mut changes: BTreeMap<String, Change> = BTreeMap::new();
     let mut diff = serde_json::Map::new();
@@ -530,7 +613,9 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
             }
         }
         let up = Isometry3::translation(0.0, 0.0, dz);
-        for e in parent.scene.objects.iter().map(|o| &o.name).chain(parent.scene.fixtures.iter().map(|f| &f.name)) {
+        for e in
+            parent.demo.scene.objects.iter().map(|o| &o.name).chain(parent.demo.scene.fixtures.iter().map(|f| &f.name))
+        {
             changes.insert(e.clone(), Change { moved: up, scale: None });
         }
         obj_change.moved = up * obj_change.moved;
@@ -604,7 +689,7 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
     }
     let mut distractor_xy = Vec::new();
     if let Some((n, seed)) = params.distractors {
-        let centre = parent.scene.table.as_ref().map(|tb| tb.top_center_m).unwrap_or([0.45, 0.0, 0.0]);
+        let centre = parent.demo.scene.table.as_ref().map(|tb| tb.top_center_m).unwrap_or([0.45, 0.0, 0.0]);
         let top_z = centre[2] + params.support_dz_m.unwrap_or(0.0);
         let mut rng = SplitMix64::new(seed ^ 0xD157_AC70);
         let names: Vec<String> = (0..n).map(|k| format!("distractor{k}")).collect();
@@ -628,6 +713,7 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
         }
         // Placed by the shared draw; redrawn while one would stand on the demonstration's low path.
         let low_path: Vec<[f64; 2]> = parent
+            .demo
             .tcp_world
             .iter()
             .filter(|p| p.translation.vector.z < top_z + 0.15)
@@ -718,9 +804,9 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
     // The demonstration, adapted to the moved anchors, checked against this variant's table.
     let path = staging.write("scene.toml", toml::to_string(&t).map_err(|e| err(e.to_string()))?.as_bytes())?;
     let (_, safety) = runtime::scene_robot(&path)?;
-    let rows = adapt(parent, &changes, &safety)
+    let rows = adapt(&parent.demo, &changes, &safety)
         .map_err(|(row, why)| err(format!("the demonstration cannot follow: row {row}: {why}")))?;
-    let moved_rows = rows.iter().zip(&parent.rows).filter(|(a, b)| a != b).count();
+    let moved_rows = rows.iter().zip(&parent.demo.rows).filter(|(a, b)| a != b).count();
     diff.insert("demonstration".into(), json!({"rows": rows.len(), "rows_re_solved": moved_rows}));
     let text = format!(
         "# Variant of {} made by `r2g augment` (see variant.json).\n{}",
@@ -734,7 +820,7 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
         source_kind: format!("{} (from {})", parent.source_kind, parent.dir_name),
         source: parent.source.clone(),
         native: parent.grasps.clone(),
-        anchors: parent.anchors.clone(),
+        anchors: parent.demo.anchors.clone(),
     };
     staging.write("events.json", &serde_json::to_vec_pretty(&events).map_err(|e| err(e.to_string()))?)?;
     Ok(Built { staging, diff: serde_json::Value::Object(diff), distractor_xy, pose_move })
@@ -742,21 +828,21 @@ fn build(parent: &Parent, params: &Params, out: &Path) -> Result<Built> {
 
 /// The parent's rows with every anchor's change applied and the moved rows re-solved.
 fn adapt(
-    parent: &Parent,
+    demo: &Demonstration,
     changes: &BTreeMap<String, Change>,
     safety: &SafetyChecks,
 ) -> std::result::Result<Vec<[f64; 8]>, (usize, String)> {
-    let n = parent.rows.len();
-    let tcp = &parent.tcp_world;
+    let n = demo.rows.len();
+    let tcp = &demo.tcp_world;
     // The change at each anchor row.
     let mut keys: Vec<(usize, Isometry3<f64>)> = Vec::new();
     let mut grasp_height: BTreeMap<String, f64> = BTreeMap::new();
-    for a in &parent.anchors {
+    for a in &demo.anchors {
         let p = Point3::from(tcp[a.row].translation.vector);
         let change = changes.get(&a.entity).copied().unwrap_or(Change::none());
         let mut delta = change.at(&p);
         if a.released.is_none() {
-            if let Some(spec) = parent.scene.objects.iter().find(|o| o.name == a.entity) {
+            if let Some(spec) = demo.scene.objects.iter().find(|o| o.name == a.entity) {
                 grasp_height.insert(a.entity.clone(), p.z - spec.position_m[2]);
             }
         }
@@ -770,7 +856,7 @@ fn adapt(
         keys.push((a.row, delta));
     }
     if keys.iter().all(|(_, d)| d.translation.vector.norm() < 1e-12 && d.rotation.angle() < 1e-12) {
-        return Ok(parent.rows.clone());
+        return Ok(demo.rows.clone());
     }
     // Path length from row 0, for blending between keys.
     let mut s = vec![0.0; n];
@@ -805,8 +891,8 @@ fn adapt(
         };
         blend(&d0, &d1, smooth(w))
     };
-    let base_from_world = parent.world_from_base.inverse();
-    let mut out = parent.rows.clone();
+    let base_from_world = demo.world_from_base.inverse();
+    let mut out = demo.rows.clone();
     let mut targets = Vec::new();
     let mut idx = Vec::new();
     for r in 0..n {
@@ -824,12 +910,12 @@ fn adapt(
         while end < idx.len() && idx[end] == idx[end - 1] + 1 {
             end += 1;
         }
-        let seed: [f64; 7] = std::array::from_fn(|j| parent.rows[idx[start]][j]);
-        let (sol, _) = crate::retarget::solve_path(&parent.robot, safety, &targets[start..end], seed, 0.0)
+        let seed: [f64; 7] = std::array::from_fn(|j| demo.rows[idx[start]][j]);
+        let (sol, _) = crate::retarget::solve_path(&demo.robot, safety, &targets[start..end], seed, 0.0)
             .map_err(|(k, why)| (idx[start + k], why))?;
         for (k, qs) in sol.iter().enumerate() {
             let r = idx[start + k];
-            out[r] = [qs[0], qs[1], qs[2], qs[3], qs[4], qs[5], qs[6], parent.rows[r][7]];
+            out[r] = [qs[0], qs[1], qs[2], qs[3], qs[4], qs[5], qs[6], demo.rows[r][7]];
         }
         start = end;
     }
@@ -1077,27 +1163,6 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
     if !pev.success {
         return Err(err(format!("the parent {} fails the gate: {}", scene_path.display(), failed_checks(&pev))));
     }
-    let rows = lockstep::read_demo(scene.task.demonstration.as_deref().ok_or_else(|| err("no demonstration"))?)?;
-    let row_at = |t: f64| native.row_at(t);
-    let anchors = events::anchors(&pev.native_events, &row_at);
-    let (robot, _) = runtime::scene_robot(scene_path)?;
-    let world_from_base = Isometry3::from_parts(
-        Translation3::new(
-            scene.robot.base_position_m[0],
-            scene.robot.base_position_m[1],
-            scene.robot.base_position_m[2],
-        ),
-        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), scene.robot.base_yaw_rad),
-    );
-    let tcp_world =
-        rows.iter().map(|r| world_from_base * robot.kin.fk(&std::array::from_fn(|j| r[j]), robot.kin.tcp)).collect();
-    let recorded = std::fs::read_to_string(scene_path.parent().unwrap_or(Path::new(".")).join("events.json"))
-        .ok()
-        .and_then(|t| serde_json::from_str::<EventsFile>(&t).ok());
-    let (source, source_kind) = match recorded {
-        Some(r) => (r.source, r.source_kind),
-        None => (events::source_grasps(&rows, scene.task.demonstration_hz), "demonstration gripper column".to_string()),
-    };
     let carrier = pev
         .native_events
         .iter()
@@ -1108,21 +1173,27 @@ pub fn augment(scene_path: &Path, o: &Options, progress: &(dyn Fn(&str) + Sync))
                 && scene.fixtures.iter().any(|f| f.name == e.other && f.joint.is_none())
         })
         .map(|e| e.other.clone());
+    let demo = Demonstration::from_native(scene_path, scene, &pev, &native)?;
+    let recorded = std::fs::read_to_string(scene_path.parent().unwrap_or(Path::new(".")).join("events.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<EventsFile>(&t).ok());
+    let (source, source_kind) = match recorded {
+        Some(r) => (r.source, r.source_kind),
+        None => (
+            events::source_grasps(&demo.rows, demo.scene.task.demonstration_hz),
+            "demonstration gripper column".to_string(),
+        ),
+    };
     let parent = Parent {
         scene_path: scene_path.to_path_buf(),
         dir_name: dir_name.clone(),
-        scene,
-        rows,
-        robot,
-        anchors,
+        demo,
         source,
         source_kind,
         grasps: pev.native_events.iter().filter(|e| e.kind == events::Kind::Grasp).cloned().collect(),
         trace_sha256: pev.trace_sha256.clone(),
         object,
         carrier,
-        tcp_world,
-        world_from_base,
     };
     let gate_runs = AtomicUsize::new(1);
 

@@ -137,6 +137,90 @@ def test_task_naming_an_unknown_object(frames, tmp_path):
                  frames / "joints.json", "--task", task)
 
 
+def test_demonstration_reanchored_to_moved_block(tmp_path):
+    """Synthetic: frames of pick_block_plate with the block 3 cm further from the robot than in
+    the scene its demonstration was recorded in. Re-anchored (the task file names that scene),
+    the demonstration follows the block and the gym validates; copied, it closes on nothing."""
+    moved = ev.moved_copy("pick_block_plate", tmp_path / "moved", "block", (0.03, 0.0))
+    f = ev.render_frames("pick_block_plate", tmp_path / "frames", 2, gym_dir=moved)
+    src = ROOT / "gyms" / "pick_block_plate"
+    verdicts = {}
+    for tag, reanchor in (("re", True), ("copy", False)):
+        task = ev.task_file(src, tmp_path / f"task_{tag}.toml", reanchor=reanchor, names_from=moved)
+        p = run(f, "--joints", f / "joints.json", "--out", tmp_path / tag, "--rounds", "0", "--task", task)
+        assert p.returncode == 0, p.stderr
+        rep = json.loads((tmp_path / tag / "reconstruction.json").read_text())
+        v = subprocess.run([str(R2G), "validate", str(tmp_path / tag), "--out", str(tmp_path / f"v_{tag}")],
+                           capture_output=True, text=True, timeout=300)
+        verdicts[tag] = json.loads((tmp_path / f"v_{tag}" / "evidence.json").read_text())
+        if reanchor:
+            assert "demonstration: re-anchored from" in p.stdout, p.stdout
+            d = rep["demonstration"]
+            assert d["status"] == "re-anchored" and [m["entity"] for m in d["moves"]] == ["block"], d
+            assert abs(d["moves"][0]["translation_m"][0] - 0.03) < 0.003, d
+            assert [m["entity"] for m in d["unchanged"]] == ["plate"] and d["rows_re_solved"] > 0, d
+            assert v.returncode == 0, v.stdout[-600:]
+        else:
+            assert "demonstration: copied unchanged" in p.stdout, p.stdout
+            assert rep["demonstration"]["status"] == "copied"
+    assert verdicts["re"]["success"] is True, verdicts["re"]["checks"]
+    assert verdicts["copy"]["success"] is False
+    assert not verdicts["copy"]["checks"]["task_success"]["pass"]
+
+
+def test_demonstration_scene_with_another_demonstration(frames, tmp_path):
+    """The scene named as the demonstration's must hold that demonstration."""
+    other = tmp_path / "demo.csv"
+    other.write_text((ROOT / "gyms" / "pick_block_plate" / "demo.csv").read_text() + "\n")
+    task = tmp_path / "task.toml"
+    task.write_text(f'[task]\ninstruction = "x"\ndemonstration = "{other}"\n'
+                    f'demonstration_scene = "{ROOT / "gyms" / "pick_block_plate"}"\n')
+    expect_error(tmp_path, frames, "does not hold the same demonstration", frames / "joints.json", "--task", task)
+
+
+def model_run(tmp_path: Path, frames: Path, answer, name: str = "gym") -> subprocess.CompletedProcess:
+    """`r2g reconstruct --llm scripted:<file>`: the scripted server on loopback (real HTTP, the
+    OpenAI wire format) answering `answer`. Mechanics only: the answer is written here."""
+    script = tmp_path / f"{name}.answers.json"
+    text = answer if isinstance(answer, str) else json.dumps(answer)
+    script.write_text(json.dumps({"gym": "reconstruct", "model": "scripted-reconstruct", "responses": [text]}))
+    return run(frames, "--joints", frames / "joints.json", "--out", tmp_path / name, "--rounds", "0",
+               "--llm", f"scripted:{script}", "--provider", "openai")
+
+
+def test_model_names_and_primitives_applied(frames, tmp_path):
+    """Mechanics only (scripted answer): the model's names and primitive choice are applied, the
+    raw answer is kept in reconstruction.json, objects it does not mention keep their fit."""
+    ans = {"objects": [{"id": "o1", "name": "thing_one", "primitive": "mesh"}, {"id": "o2", "name": "thing_two"}]}
+    p = model_run(tmp_path, frames, ans)
+    assert p.returncode == 0, p.stderr
+    assert "mechanics only" in p.stderr
+    line = json.loads(p.stdout.strip().splitlines()[-1])
+    assert sorted(line["objects"]) == ["thing_one", "thing_two"], line
+    rep = json.loads((tmp_path / "gym" / "reconstruction.json").read_text())
+    assert rep["model"]["raw_answer"] == json.dumps(ans) and rep["model"]["mechanics_only"] is True
+    by = {o["name"]: o for o in rep["objects"]}
+    assert by["thing_one"]["kind"] == "mesh" and by["thing_one"]["fit"]["chosen_by"] == "model"
+    assert by["thing_one"]["fit"]["evidence_chose"] in ("box", "cylinder")
+    assert "chosen_by" not in by["thing_two"]["fit"]
+    assert (tmp_path / "gym" / "meshes" / "thing_one.obj").is_file()
+
+
+@pytest.mark.parametrize("answer,needle", [
+    ({"objects": [{"id": "o7", "name": "ghost", "primitive": "box"}]}, "names object id 'o7', which the reconstruction"),
+    ({"objects": [{"id": "o1", "primitive": "cone"}]}, "primitive 'cone' is not one of box, cylinder, sphere, bowl"),
+    ("The block is red.", "the model's answer is not JSON"),
+    ({"objects": [{"id": "o1", "name": "Big Block"}]}, "name 'Big Block' is not a lower-case identifier"),
+])
+def test_model_answer_refused(frames, tmp_path, answer, needle):
+    """Mechanics only: an answer that is not a valid labelling is a clear error, no gym."""
+    p = model_run(tmp_path, frames, answer)
+    assert p.returncode != 0 and needle in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
+    assert not (tmp_path / "gym").exists()
+    assert not any(x.name.startswith(".gym.partial") for x in tmp_path.iterdir())
+
+
 class Geometry(BaseHTTPRequestHandler):
     """A geometry service on loopback: answers the depth of the synthetic frame whose RGB it
     receives (looked up by the PNG's pixels), or NaN in `nan` mode."""
