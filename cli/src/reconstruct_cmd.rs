@@ -26,6 +26,11 @@ pub struct ReconstructArgs {
     /// `r2g kin` takes it.
     #[arg(long, default_value = "panda")]
     pub robot: String,
+    /// The robot's TCP link in its URDF (the scene's `tcp_link`). The URDF must have a chain of
+    /// exactly 7 revolute joints from its base to this link, and `--joints` gives those 7 angles;
+    /// a missing link is refused with the list of the URDF's links.
+    #[arg(long, default_value = "hand_tcp")]
+    pub tcp_link: String,
     /// The arm's pose at capture: "q1,...,q7" (rad; an 8th value is the gripper, -1 open .. +1
     /// closed) for every image, or a JSON file per image id ({"<id>": {"joints_rad": [7],
     /// "finger_m": f}}, as `r2g render` writes joints.json).
@@ -151,7 +156,15 @@ fn step(args: &[String]) -> anyhow::Result<serde_json::Value> {
         let line = err.lines().rev().find(|l| l.starts_with("error: ")).map(|l| l["error: ".len()..].to_string());
         match line {
             Some(l) => bail!("{l}"),
-            None => bail!("{} {} failed: {}", py.display(), script.display(), err.trim()),
+            // Not ours: one line, never a traceback (the Python side writes one under the work
+            // folder when R2G_RECONSTRUCT_KEEP_WORK is set).
+            None => bail!(
+                "{} {} failed (exit {}): {}",
+                py.display(),
+                script.display(),
+                out.status.code().map(|c| c.to_string()).unwrap_or_else(|| "by a signal".into()),
+                err.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message").trim()
+            ),
         }
     }
     let text = String::from_utf8_lossy(&out.stdout);
@@ -278,7 +291,8 @@ fn demonstration(
 pub fn run(a: ReconstructArgs) -> anyhow::Result<i32> {
     let started = Instant::now();
     // The robot, as `r2g kin` takes it: a name or a URDF file.
-    let model = runtime::launch::robot_by_name(&a.robot, "hand_tcp").with_context(|| format!("--robot {}", a.robot))?;
+    let model = runtime::launch::robot_by_name(&a.robot, &a.tcp_link)
+        .with_context(|| format!("--robot {} with --tcp-link {}", a.robot, a.tcp_link))?;
     let panda_urdf = runtime::launch::robots_dir().join("panda").join("panda.urdf");
     let (urdf, limits) = match controllers::Profile::from_name(&a.robot) {
         Some(_) => (panda_urdf.clone(), a.robot.clone()),
@@ -307,6 +321,8 @@ pub fn run(a: ReconstructArgs) -> anyhow::Result<i32> {
         s(&urdf),
         "--limits".into(),
         limits,
+        "--tcp-link".into(),
+        a.tcp_link.clone(),
         "--joints".into(),
         a.joints.clone(),
         "--out".into(),
@@ -419,6 +435,11 @@ pub fn run(a: ReconstructArgs) -> anyhow::Result<i32> {
             sus["name"].as_str().unwrap_or("?"),
             sus["why"].as_str().unwrap_or("likely spurious")
         );
+    }
+    for w in fitted["warnings"].as_array().into_iter().flatten().filter_map(|w| w.as_str()) {
+        if w.contains("kept static") {
+            println!("static: {w}");
+        }
     }
     if let Some(note) = &demo_note {
         println!("demonstration: {note}");

@@ -26,6 +26,7 @@ import os
 import subprocess
 import sys
 import time
+import traceback
 import tomllib
 from pathlib import Path
 from typing import Any, Optional
@@ -55,6 +56,14 @@ LIFT_M = 0.0005
 ROBOT_DEPTH_TOLERANCE_M = 0.015
 """A source pixel belongs to the robot when it is no more than this in front of the robot's
 rendered surface there (or behind it)."""
+
+
+STAGE = ["starting"]
+"""What the running step is doing, for the one-line error of an unexpected failure."""
+
+
+def set_stage(what: str) -> None:
+    STAGE[0] = what
 
 
 def fail(msg: str) -> None:
@@ -222,7 +231,7 @@ def run_render(r2g: str, gym: Path, cams: Path, out: Path) -> dict:
     return by_src
 
 
-def robot_pixels(frames: list, urdf: str, r2g: str, work: Path) -> dict:
+def robot_pixels(frames: list, urdf: str, r2g: str, work: Path, tcp_link: str = "hand_tcp") -> dict:
     """{frame id: (H, W) bool}: where the source sees the robot, from the robot alone rendered at
     each frame's joints (same URDF, same renderer as the gym)."""
     groups: dict = {}
@@ -233,7 +242,7 @@ def robot_pixels(frames: list, urdf: str, r2g: str, work: Path) -> dict:
         gdir = work / f"robot_{gi}"
         gdir.mkdir(parents=True, exist_ok=True)
         model = {"name": "robot_only", "source": "the capture joints",
-                 "robot": {"urdf": urdf, "tcp_link": "hand_tcp", "initial_joints_rad": list(q), "initial_gripper": g},
+                 "robot": {"urdf": urdf, "tcp_link": tcp_link, "initial_joints_rad": list(q), "initial_gripper": g},
                  "table": None, "cameras": [], "objects": [], "task": {}}
         # A small table far below puts the floor (drawn 0.75 m under the table top) where no
         # robot part is: what the render shows above z = -1 m is the robot.
@@ -378,14 +387,12 @@ def hull_mesh(P: np.ndarray, plane: Any, bottom: float, centre2: np.ndarray) -> 
     remap = {int(v): i for i, v in enumerate(used)}
     V = (Q - origin)[used]
     faces = []
-    cen = V.mean(0)
     for s, eq in zip(hull.simplices, hull.equations):
         a, b, c = (remap[int(i)] for i in s)
         n = np.cross(V[b] - V[a], V[c] - V[a])
         if np.dot(n, eq[:3]) < 0:
             b, c = c, b
         faces.append((a, b, c))
-    del cen
     spec = {"shape": "mesh", "_mesh": {"vertices": V.tolist(), "faces": faces},
             "position_m": [r(origin[0]), r(origin[1]), r(origin[2] + LIFT_M)]}
     return spec, float(hull.volume)
@@ -625,13 +632,15 @@ def cmd_fit(a: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     stage, work = Path(a.out), Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
+    set_stage("reading the task and the frames")
     task, names, demo, demo_scene = read_task(a.task, a.instruction)
     frames = rio.read_frames(Path(a.frames), need_depth=not a.geometry_url)
     rio.read_joints(a.joints, frames)
     rio.fill_depth(frames, a.geometry_url)
     t_read = time.perf_counter()
     urdf = str(Path(a.urdf).resolve())
-    robot_px = robot_pixels(frames, urdf, a.r2g, work)
+    set_stage("removing the robot's pixels")
+    robot_px = robot_pixels(frames, urdf, a.r2g, work, a.tcp_link)
     panda = a.panda
     views = []
     for f in frames:
@@ -643,6 +652,7 @@ def cmd_fit(a: argparse.Namespace) -> None:
                                    base_from_camera=f.base_from_camera,
                                    joint=f.joints if panda else None, gripper=f.gripper if panda else None))
     t_filter = time.perf_counter()
+    set_stage("segmenting the scene")
     choices: dict = {}
     import warnings
     with warnings.catch_warnings(record=True) as caught:
@@ -664,6 +674,7 @@ def cmd_fit(a: argparse.Namespace) -> None:
     llm = json.loads(Path(a.llm_answer).read_text()) if a.llm_answer else None
     if llm is not None:
         choices = read_model_answer(llm["text"], len(clusters))
+    set_stage("fitting the objects")
     # Supports first, so an object on another gets that one's top.
     order = sorted(range(len(clusters)), key=lambda i: (clusters[i].support not in (None, "plane"), i))
     tops: dict = {}
@@ -697,7 +708,9 @@ def cmd_fit(a: argparse.Namespace) -> None:
         if spec["_top"] - spec["_fit"]["bottom_m"] > FIXTURE_HEIGHT_M or max(ext) > FIXTURE_SIDE_M:
             obj["free"] = False
             spec["_fit"]["static"] = (f"taller than {FIXTURE_HEIGHT_M} m or longer than {FIXTURE_SIDE_M} m: "
-                                      "kept static, as furniture")
+                                      "kept static, as furniture; it may be an articulated fixture (a door, a "
+                                      "drawer), which without the optional model becomes a static piece (box or hull) with "
+                                      "no joint")
         obj["mass_kg"] = spec["mass_kg"]
         obj["rgba"] = colour_of(o, plane)
         obj["_fit"] = spec["_fit"]
@@ -708,6 +721,7 @@ def cmd_fit(a: argparse.Namespace) -> None:
             obj["_bowl"] = spec["_bowl"]
         obj["_cluster"] = int(o.id)
         objects.append(obj)
+    set_stage("naming the objects and checking the task")
     llm_named = apply_model_names(choices, objects, names)
     apply_names(names, objects, scene, clusters, a.task or "--task")
     seen: dict = {}
@@ -717,6 +731,10 @@ def cmd_fit(a: argparse.Namespace) -> None:
                               "(the model's names and the task file's [names] must not collide)")
         seen[o["name"]] = k
     check_rules(task, objects)
+    for o in objects:
+        if o["_fit"].get("static"):
+            warn.append(f"{o['name']}: {o['_fit']['static']}")
+    set_stage("fitting the table")
     # Table: the plane's points seen, widened to hold every object with 5 cm to spare.
     pts = []
     cols = []
@@ -749,16 +767,18 @@ def cmd_fit(a: argparse.Namespace) -> None:
                         "fx": r(f.K[0, 0], 4), "fy": r(f.K[1, 1], 4), "cx": r(f.K[0, 2], 4), "cy": r(f.K[1, 2], 4),
                         "width": f.width, "height": f.height})
     f0 = frames[0]
-    robot = {"urdf": urdf, "tcp_link": "hand_tcp", "base_position_m": [0.0, 0.0, 0.0],
+    robot = {"urdf": urdf, "tcp_link": a.tcp_link, "base_position_m": [0.0, 0.0, 0.0],
              "initial_joints_rad": [r(q, 7) for q in f0.joints], "initial_gripper": r(f0.gripper, 4)}
     if a.limits != "panda":
         robot["limits"] = a.limits
     model = {"name": a.name or stage.name.lstrip(".").split(".partial")[0] or "reconstructed",
              "source": str(Path(a.frames).resolve()), "robot": robot, "table": table, "cameras": cameras,
              "objects": objects, "task": dict(task)}
+    set_stage("writing scene.toml")
     write_scene(stage, model)
     if demo is not None:
         (stage / "demo.csv").write_bytes(demo.read_bytes())
+    set_stage("writing the state for the reprojection gate")
     # State for the gate: source masks per object and view, depth, rgb.
     arrays = {}
     for f in frames:
@@ -826,6 +846,7 @@ def _points(depth: np.ndarray, mask: np.ndarray, K: dict, T: np.ndarray) -> np.n
 
 def cmd_gate(a: argparse.Namespace) -> None:
     t0 = time.perf_counter()
+    set_stage(f"reading the state of round {a.round}")
     stage, work = Path(a.out), Path(a.work)
     st = json.loads((work / "model.json").read_text())
     model = st["model"]
@@ -841,7 +862,9 @@ def cmd_gate(a: argparse.Namespace) -> None:
         if "quat_wxyz" in s:
             o["quat_wxyz"] = [r(v, 6) for v in s["quat_wxyz"]]
     out = work / f"render_{a.round}"
+    set_stage(f"rendering round {a.round}")
     ren = run_render(a.r2g, stage, work / "cams.json", out)
+    set_stage(f"comparing round {a.round}'s render with the source")
     per_obj = []
     for k, o in enumerate(model["objects"]):
         views = []
@@ -856,8 +879,9 @@ def cmd_gate(a: argparse.Namespace) -> None:
             rv = ren[fid]
             mp = rv["dir"] / "mask_visib" / f"{rv['stem']}_{k:06d}.png"
             rm = rio.read_png(mp) > 127 if mp.is_file() else np.zeros_like(src)
-            # Both masks over the pixels of what stands more than 5 mm above the plane, as the
-            # segmentation cut does, so a mask that omits the bottom millimetres is not "smaller".
+            # The IoU compares the whole masks (the source's from the segmentation, the render's
+            # from mask_visib); the centroids below use only the points more than 5 mm above the
+            # plane, as the segmentation cut does, so the bottom millimetres do not shift them.
             sd, rd = arr[f"depth_{fid}"], rv["depth"]
             inter, union = (src & rm).sum(), (src | rm).sum()
             v = {"image": fid, "source_px": int(src.sum()), "render_px": int(rm.sum()),
@@ -912,6 +936,7 @@ def cmd_gate(a: argparse.Namespace) -> None:
         (work / "model.json").write_text(json.dumps(st))
         rnd["reverted_to_round"] = best["round"]
         converged = True
+    set_stage(f"correcting round {a.round}'s objects")
     if not a.last and not converged and not regressed:
         for o, views in zip(model["objects"], per_obj):
             cor = correct(o, views, plane)
@@ -1087,6 +1112,7 @@ def main() -> None:
     f.add_argument("--urdf", required=True)
     f.add_argument("--panda", action="store_true", help="the URDF is the Panda's: use its capsule self-filter too")
     f.add_argument("--limits", default="panda")
+    f.add_argument("--tcp-link", default="hand_tcp", help="the URDF link the scene's robot uses as its TCP")
     f.add_argument("--joints", required=True)
     f.add_argument("--out", required=True)
     f.add_argument("--work", required=True)
@@ -1107,12 +1133,36 @@ def main() -> None:
     n.add_argument("--out", required=True)
     n.add_argument("--source-scene", required=True)
     a = ap.parse_args()
+    run_step({"fit": cmd_fit, "gate": cmd_gate, "anchor": cmd_anchor}[a.cmd], a)
+
+
+def run_step(fn, a: argparse.Namespace) -> None:
+    """Runs one step; every failure leaves as one "error: ..." line on stderr (exit status 2).
+
+    Input problems (FramesError) and failed sub-commands (RuntimeError) say what was wrong. Any
+    other exception is a fault of this program: the line names the step and the stage it was in;
+    the traceback goes to ``<work>/traceback-<step>.txt`` only when R2G_RECONSTRUCT_KEEP_WORK or
+    R2G_DEBUG is set (the Rust side removes the work folder otherwise).
+    """
+    STAGE[0] = "starting"
     try:
-        {"fit": cmd_fit, "gate": cmd_gate, "anchor": cmd_anchor}[a.cmd](a)
-    except FramesError as e:
+        fn(a)
+    except (FramesError, RuntimeError) as e:
         fail(str(e))
-    except RuntimeError as e:
-        fail(str(e))
+    except Exception as e:  # noqa: BLE001 - the last line of defence: one line, never a raw traceback
+        where = f"the reconstruction's {a.cmd} step failed while {STAGE[0]}: {type(e).__name__}: {e}"
+        work = getattr(a, "work", None)
+        if work and (os.environ.get("R2G_RECONSTRUCT_KEEP_WORK") or os.environ.get("R2G_DEBUG")):
+            try:
+                Path(work).mkdir(parents=True, exist_ok=True)
+                tb = Path(work) / f"traceback-{a.cmd}.txt"
+                tb.write_text(traceback.format_exc())
+                where += f" (traceback in {tb})"
+            except OSError:
+                pass
+        else:
+            where += " (set R2G_RECONSTRUCT_KEEP_WORK=1 to keep the traceback in the work folder)"
+        fail(" ".join(where.split("\n")))
 
 
 if __name__ == "__main__":

@@ -21,6 +21,8 @@ from typing import Any, Optional
 
 import numpy as np
 
+import r2g_reconstruct_io as rio
+
 ROOT = Path(__file__).resolve().parents[2]
 R2G = ROOT / "target" / "release" / "r2g"
 
@@ -189,11 +191,11 @@ def truth_entities(gym_dir: Path) -> list[dict]:
     s = tomllib.loads((gym_dir / "scene.toml").read_text())
     out = []
     for kind, items in (("object", s.get("objects", [])), ("fixture", s.get("fixtures", []))):
-        for e in items:
+        for k, e in enumerate(items):
             b = entity_box(e, gym_dir, kind == "fixture")
             if b is not None:
                 out.append({"name": e["name"], "kind": kind, "centre": b[0], "extent": b[1],
-                            "articulated": bool(e.get("joint"))})
+                            "articulated": bool(e.get("joint")), "index": k if kind == "object" else None})
             # A door or drawer stands apart from its body in the frames: its own entity, at the
             # joint's initial value.
             mb = moving_box(e, gym_dir) if kind == "fixture" and e.get("joint") else None
@@ -206,11 +208,49 @@ def truth_entities(gym_dir: Path) -> list[dict]:
 def recon_entities(gym_dir: Path) -> list[dict]:
     s = tomllib.loads((gym_dir / "scene.toml").read_text())
     out = []
-    for e in s.get("objects", []):
+    for k, e in enumerate(s.get("objects", [])):
         b = entity_box(e, gym_dir)
         if b is not None:
-            out.append({"name": e["name"], "centre": b[0], "extent": b[1], "free": e.get("free", True)})
+            out.append({"name": e["name"], "centre": b[0], "extent": b[1], "free": e.get("free", True), "index": k})
     return out
+
+
+def true_mask_iou(frames: Path, gym: Path, truth: list, rec: list, pairs: list, out: Path) -> dict:
+    """IoU of the reconstruction's render against the true masks of the synthetic frames.
+
+    The gate's IoU compares the render with the reconstruction's own segmentation of the source;
+    this one renders the reconstructed gym from the source cameras (`r2g render --cameras`) and
+    compares each matched object's mask_visib with the source object's mask_visib, which `r2g
+    render` wrote from the true scene. Only objects of the true scene have such masks (fixtures
+    do not). Returns {"per_object": {truth name: mean IoU over views}, "mean": ..., "min": ...}.
+    """
+    p = run([R2G, "render", gym, "--cameras", frames / "scene_camera.json", "--out", out])
+    if p.returncode != 0:
+        return {"error": (p.stderr.strip().splitlines() or ["?"])[-1]}
+    src_ids = list(json.loads((frames / "scene_camera.json").read_text()))
+    ren_ids = list(json.loads((out / "scene_camera.json").read_text()))
+    stem = lambda i: f"{int(i):06d}" if i.isdigit() else i  # noqa: E731
+    per = {}
+    for i, j in pairs:
+        t, q = truth[i], rec[j]
+        if t.get("index") is None:
+            continue
+        ious = []
+        for sid, rid in zip(src_ids, ren_ids):
+            tm = frames / "mask_visib" / f"{stem(sid)}_{t['index']:06d}.png"
+            rm = out / "mask_visib" / f"{stem(rid)}_{q['index']:06d}.png"
+            if not tm.is_file():
+                continue
+            a = rio.read_png(tm) > 127
+            b = rio.read_png(rm) > 127 if rm.is_file() else np.zeros_like(a)
+            union = (a | b).sum()
+            if union:
+                ious.append(float((a & b).sum() / union))
+        if ious:
+            per[t["name"]] = round(float(np.mean(ious)), 4)
+    vals = list(per.values())
+    return {"per_object": per, "mean": round(float(np.mean(vals)), 4) if vals else None,
+            "min": round(float(np.min(vals)), 4) if vals else None}
 
 
 def match(truth: list, rec: list, max_xy: float = 0.06) -> list[tuple[int, int]]:
@@ -327,12 +367,17 @@ def evaluate(gym: str, work: Path, extra: int = 2, validate: bool = True, rounds
         "position_error_cm_mean": round(float(np.mean(pos_err)) * 100, 2) if pos_err else None,
         "position_error_cm_max": round(float(np.max(pos_err)) * 100, 2) if pos_err else None,
         "size_error_cm_mean": round(float(np.mean(size_err)) * 100, 2) if size_err else None,
+        # Gate IoU: the render against the reconstruction's own segmentation of the source.
         "iou_mean": last.get("mean_iou"), "iou_min": last.get("min_iou"),
         "iou_first_round": rep["rounds"][0].get("mean_iou") if rep.get("rounds") else None,
         "rounds": len(rep.get("rounds", [])), "kinds": line.get("kinds"), "task_empty": line.get("task_empty"),
         "suspects": [x["name"] for x in rep.get("spurious_suspects") or []],
         "demonstration": (rep.get("demonstration") or {}).get("status"),
     })
+    # True-mask IoU: the render against the synthetic frames' mask_visib (the truth).
+    tm = true_mask_iou(frames, out, truth, rec, pairs, work / "true_iou")
+    res.update({"true_iou_mean": tm.get("mean"), "true_iou_min": tm.get("min"),
+                "true_iou_per_object": tm.get("per_object"), "true_iou_error": tm.get("error")})
     if validate and has_task:
         v = run([R2G, "validate", out, "--out", work / "validate"])
         try:

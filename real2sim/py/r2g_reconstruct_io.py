@@ -239,8 +239,6 @@ def read_frames(frames_dir: Path, need_depth: bool) -> list[Frame]:
         K = _numbers(entry, "cam_K", 9, where).reshape(3, 3)
         if K[0, 1] != 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or abs(K[2, 2] - 1) > 1e-9:
             raise FramesError(f"{where}: cam_K must be a pinhole matrix [fx, 0, cx, 0, fy, cy, 0, 0, 1] (no skew)")
-        if K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise FramesError(f"{where}: cam_K has a focal length that is not positive (fx {K[0, 0]}, fy {K[1, 1]})")
         R = _numbers(entry, "cam_R_w2c", 9, where).reshape(3, 3)
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or abs(np.linalg.det(R) - 1) > 1e-4:
             raise FramesError(f"{where}: cam_R_w2c is not a rotation (orthonormal rows, determinant 1)")
@@ -259,6 +257,13 @@ def read_frames(frames_dir: Path, need_depth: bool) -> list[Frame]:
         for key, size in (("width", W), ("height", H)):
             if key in entry and entry[key] != size:
                 raise FramesError(f"{where}: \"{key}\" = {entry[key]} but {rgb_path.name} is {W}x{H}")
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        if not (fx > 0 and fy > 0):
+            raise FramesError(f"{where}: cam_K has a focal length that is not positive (fx {fx}, fy {fy})")
+        if not (0 <= cx <= W - 1 and 0 <= cy <= H - 1):
+            raise FramesError(f"{where}: cam_K principal point (cx {cx}, cy {cy}) lies outside the {W}x{H} image "
+                              f"({rgb_path.name}); it must satisfy 0 <= cx <= {W - 1} and 0 <= cy <= {H - 1} "
+                              "(pixel-index convention)")
         depth = None
         depth_path = None
         if has_depth:
@@ -273,6 +278,10 @@ def read_frames(frames_dir: Path, need_depth: bool) -> list[Frame]:
             if d.ndim != 2:
                 raise FramesError(f"{depth_path}: a depth image must have one channel (uint16), this one has "
                                   f"{d.shape[2]}")
+            if d.dtype != np.uint16:
+                raise FramesError(f"{depth_path}: a depth image must be 16-bit grey (uint16 x depth_scale = mm); "
+                                  f"this one holds {8 * d.dtype.itemsize}-bit values, which would be misread "
+                                  "as depth")
             if d.shape != (H, W):
                 raise FramesError(f"{depth_path} is {d.shape[1]}x{d.shape[0]} but its colour image {rgb_path.name} "
                                   f"is {W}x{H}: depth and colour must be registered at the same size")
