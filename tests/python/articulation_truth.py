@@ -15,14 +15,11 @@ from __future__ import annotations
 import json
 import os
 import re
-import signal
-import subprocess
-import threading
 import time
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Optional
 
-import numpy as np
+from render_truth import LiveGym
 
 ROOT = Path(__file__).resolve().parents[2]
 R2G = Path(os.environ.get("R2G_BIN", str(ROOT / "target" / "release" / "r2g")))
@@ -50,59 +47,21 @@ def scene_with_joint(gym: str, initial: float, out_dir: Path, name: Optional[str
     return d / "scene.toml"
 
 
-class SceneGym:
-    """`r2g up <scene file> --mode lockstep --trace-dir DIR`, stopped with SIGTERM to its pid."""
+class SceneGym(LiveGym):
+    """`r2g up <scene file> --mode lockstep --trace-dir DIR` (render_truth's LiveGym from a scene
+    file), ready when constructed."""
 
     def __init__(self, scene: Path, trace_dir: Path, tag: str = "art", ready_s: float = 120.0) -> None:
-        self.previous_instance = os.environ.get("R2G_INSTANCE")
-        self.instance = f"{tag}{os.getpid()}_{int(time.time() * 1000) % 100000}"
-        self.trace_dir = Path(trace_dir)
-        self.trace_dir.mkdir(parents=True, exist_ok=True)
-        self.proc = subprocess.Popen([str(R2G), "up", str(scene), "--instance", self.instance, "--mode", "lockstep",
-                                      "--trace-dir", str(self.trace_dir)],
-                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
-                                     text=True)
-        self.ready = threading.Event()
-        threading.Thread(target=self._watch, daemon=True).start()
+        Path(trace_dir).mkdir(parents=True, exist_ok=True)
+        super().__init__(R2G, GYMS_DIR, str(int(time.time() * 1000) % 100000), trace_dir=Path(trace_dir), tag=tag,
+                         scene=Path(scene))
         if not self.ready.wait(ready_s):
             self.stop()
             raise RuntimeError(f"r2g up {scene} did not print READY within {ready_s} s")
 
-    def _watch(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            if line.startswith("READY"):
-                self.ready.set()
-
-    def use(self) -> None:
-        os.environ["R2G_INSTANCE"] = self.instance
-
-    def observe(self, cameras: Sequence[str] = ("agentview", "wrist")) -> dict:
-        """A raw observation with copied arrays."""
-        import robo
-        self.use()
-        s = dict(robo.get_state(list(cameras), raw=True))
-        s["image"] = {k: np.array(v) for k, v in s["image"].items()}
-        s["depth"] = {k: np.array(v) for k, v in s["depth"].items()}
-        return s
-
-    def stop(self) -> None:
-        """Stops the instance (the episode in progress is judged and its trace written)."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        if os.environ.get("R2G_INSTANCE") == self.instance:
-            if self.previous_instance is None:
-                os.environ.pop("R2G_INSTANCE", None)
-            else:
-                os.environ["R2G_INSTANCE"] = self.previous_instance
-
     def last(self, kind: str) -> dict:
         """The newest episode-N.<kind>.json (kind "trace" or "eval")."""
+        assert self.trace_dir is not None
         files = sorted(self.trace_dir.glob(f"episode-*.{kind}.json"), key=lambda p: int(p.name.split("-")[1].split(".")[0]))
         if not files:
             raise FileNotFoundError(f"no episode-*.{kind}.json in {self.trace_dir}")

@@ -46,17 +46,20 @@ class LiveGym:
     before (a fixture's instance)."""
 
     def __init__(self, r2g: Path, gyms_dir: Path, gym: str, trace_dir: Optional[Path] = None, tag: str = "g",
-                 mode: str = "lockstep"):
+                 mode: str = "lockstep", scene: Optional[Path] = None):
+        """``gym``: a gym of ``gyms_dir``, or with ``scene`` (a scene file elsewhere, started
+        from its path) only a label for the instance's name."""
         self.gym = gym
         self.previous_instance = os.environ.get("R2G_INSTANCE")
         self.instance = f"{tag}{os.getpid()}_{gym}"
-        self.scene_path = gyms_dir / gym / "scene.toml"
+        self.scene_path = Path(scene) if scene is not None else gyms_dir / gym / "scene.toml"
         self.scene = tomllib.loads(self.scene_path.read_text())
         self.trace_dir = trace_dir
-        cmd = [str(r2g), "up", gym, "--instance", self.instance, "--mode", mode]
+        cmd = [str(r2g), "up", str(scene) if scene is not None else gym, "--instance", self.instance, "--mode", mode]
         if trace_dir is not None:
             cmd += ["--trace-dir", str(trace_dir)]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
+                                     text=True)
         self.ready = threading.Event()
         threading.Thread(target=self._watch, daemon=True).start()
 
@@ -67,10 +70,11 @@ class LiveGym:
                 self.ready.set()
 
     def stop(self) -> None:
+        """Stops the instance (the episode in progress is judged and its trace written)."""
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
             try:
-                self.proc.wait(timeout=20)
+                self.proc.wait(timeout=60)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
