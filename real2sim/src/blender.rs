@@ -370,6 +370,7 @@ pub fn export(sim: &mut Sim, motion: &Motion) -> anyhow::Result<Value> {
     let vis = &m.vis;
     let head = &vis.headlight;
     let sky = (0..ntex).find(|&t| tex_type[t] == 2).map(tex_mean);
+    let (bp, bq) = sim.world_from_base();
     Ok(json!({
         "gym": sim.scene.name,
         "source": motion.source,
@@ -389,6 +390,9 @@ pub fn export(sim: &mut Sim, motion: &Motion) -> anyhow::Result<Value> {
             "diffuse": head.diffuse.map(|v| round6(v as f64)),
         },
         "sky_mean_rgb": sky,
+        // BOP's world is the robot base: the cameras written beside Blender's renders are posed
+        // in it through this.
+        "world_from_base": {"position_m": bp, "quat_wxyz": [bq[3], bq[0], bq[1], bq[2]]},
     }))
 }
 
@@ -527,6 +531,27 @@ pub fn bop_pose(p: &[f64], q_wxyz: &[f64]) -> ([f64; 9], [f64; 3]) {
     (r, t)
 }
 
+/// [`bop_pose`] of a camera's world pose `[x, y, z, qw, qx, qy, qz]`, taken into the robot base
+/// frame (BOP's world) with the export's `world_from_base`.
+pub(crate) fn bop_pose_in_base(doc: &Value, pose: &[f64]) -> anyhow::Result<([f64; 9], [f64; 3])> {
+    use controllers::math;
+    if pose.len() != 7 {
+        bail!("camera pose: {} numbers, not 7", pose.len());
+    }
+    let wb = &doc["world_from_base"];
+    let v = |x: &Value| -> Vec<f64> { x.as_array().into_iter().flatten().filter_map(Value::as_f64).collect() };
+    let (bp, bq) = (v(&wb["position_m"]), v(&wb["quat_wxyz"]));
+    if bp.len() != 3 || bq.len() != 4 {
+        bail!("the export has no world_from_base pose");
+    }
+    let world_from_base = ([bp[0], bp[1], bp[2]], [bq[1], bq[2], bq[3], bq[0]]);
+    let (p, q) = math::compose(
+        math::inverse(world_from_base),
+        ([pose[0], pose[1], pose[2]], [pose[4], pose[5], pose[6], pose[3]]),
+    );
+    Ok(bop_pose(&p, &[q[3], q[0], q[1], q[2]]))
+}
+
 /// Renders every instant of `at` from every camera named in `cameras` (default: all of the
 /// document's) into `dest` (BOP layout), whole or not at all. Returns Blender's summary
 /// (per-frame times).
@@ -622,7 +647,7 @@ pub fn render_pairs(
         let g = |k: &str| cam[k].as_f64().unwrap_or(0.0);
         let pose: Vec<f64> =
             cam["poses"][f].as_array().context("camera pose")?.iter().filter_map(Value::as_f64).collect();
-        let (r, tr) = bop_pose(&pose[0..3], &pose[3..7]);
+        let (r, tr) = bop_pose_in_base(doc, &pose)?;
         // Pixel centres at integer coordinates: scaling maps edges, so centres move by half a pixel.
         let k = [
             g("fx") * sx,

@@ -9,6 +9,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
+use controllers::math;
 use serde_json::{json, Value};
 use sim_host::Sim;
 
@@ -101,9 +102,10 @@ pub fn read_bop_cameras(dir: &Path) -> anyhow::Result<Vec<(u64, BopCam)>> {
     Ok(out)
 }
 
-/// A BOP camera as `r2g blender` exports cameras: position and quaternion (w, x, y, z) of a frame
-/// looking along its −z with image up along +y, intrinsics and size.
-fn bop_to_export(name: &str, c: &BopCam, n_states: usize) -> Value {
+/// A BOP camera as `r2g blender` exports cameras: position and quaternion (w, x, y, z) in the
+/// scene's world of a frame looking along its −z with image up along +y, intrinsics and size.
+/// BOP's world is the robot base, placed in the scene's world by `world_from_base`.
+fn bop_to_export(name: &str, c: &BopCam, n_states: usize, world_from_base: ([f64; 3], math::Quat)) -> Value {
     let r = c.r_w2c;
     let t = c.t_w2c_mm.map(|v| v / 1000.0);
     // Camera centre: −Rᵀt.
@@ -114,7 +116,7 @@ fn bop_to_export(name: &str, c: &BopCam, n_states: usize) -> Value {
     ];
     // World-from-camera columns: OpenCV's x, −y, −z (the rows of R).
     let m = [r[0], -r[3], -r[6], r[1], -r[4], -r[7], r[2], -r[5], -r[8]];
-    let q = controllers::math::quat_from_mat(&m);
+    let (p, q) = math::compose(world_from_base, (p, math::quat_from_mat(&m)));
     let pose = vec![p[0], p[1], p[2], q[3], q[0], q[1], q[2]];
     json!({
         "name": name,
@@ -272,6 +274,7 @@ pub fn run(a: &Options, mujoco_render: MujocoRenderFn) -> anyhow::Result<Value> 
             }
             Some(frames) => {
                 let default_t = sample_t(a.at.first().copied().unwrap_or(states[0].t_s))?;
+                let world_from_base = sim.world_from_base();
                 let cams = doc["cameras"].as_array_mut().context("cameras")?;
                 cams.clear();
                 let mut by_time: BTreeMap<u64, Vec<u64>> = BTreeMap::new();
@@ -280,7 +283,7 @@ pub fn run(a: &Options, mujoco_render: MujocoRenderFn) -> anyhow::Result<Value> 
                         Some(t) => sample_t(t)?,
                         None => default_t,
                     };
-                    cams.push(bop_to_export(&format!("frame{id:06}"), c, states.len()));
+                    cams.push(bop_to_export(&format!("frame{id:06}"), c, states.len(), world_from_base));
                     by_time.entry(t.to_bits()).or_default().push(*id);
                 }
                 // MuJoCo: one render per instant, from the source cameras of that instant.
@@ -449,7 +452,7 @@ mod tests {
             height: 480,
             t_s: None,
         };
-        let e = bop_to_export("c", &cam, 2);
+        let e = bop_to_export("c", &cam, 2, ([0.0; 3], [0.0, 0.0, 0.0, 1.0]));
         let pose: Vec<f64> = e["poses"][1].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
         for k in 0..3 {
             assert!((pose[k] - p[k]).abs() < 1e-9, "{pose:?}");
@@ -462,6 +465,27 @@ mod tests {
             assert!((t2[k] - t[k]).abs() < 1e-6, "{t2:?} {t:?}");
         }
         assert_eq!((e["fx"].as_f64(), e["cy"].as_f64()), (Some(500.0), Some(250.0)));
+
+        // A robot base away from the scene's origin (moved and turned a quarter about z): the
+        // exported camera is placed in the scene's world, and the BOP pose written beside
+        // Blender's renders (taken back into the base frame) is the source's again.
+        let s = std::f64::consts::FRAC_1_SQRT_2;
+        let wb = ([0.3, -0.2, 0.05], [0.0, 0.0, s, s]);
+        let e = bop_to_export("c", &cam, 1, wb);
+        let pose: Vec<f64> = e["poses"][0].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+        // Base point p in the world: rotate by 90° about z (x, y) -> (-y, x), then translate.
+        let pw = [0.3 + 0.3, -0.2 + 1.2, 0.05 + 0.8];
+        for k in 0..3 {
+            assert!((pose[k] - pw[k]).abs() < 1e-9, "{pose:?} {pw:?}");
+        }
+        let doc = json!({"world_from_base": {"position_m": wb.0, "quat_wxyz": [s, 0.0, 0.0, s]}});
+        let (r3, t3) = crate::blender::bop_pose_in_base(&doc, &pose).unwrap();
+        for k in 0..9 {
+            assert!((r3[k] - r[k]).abs() < 1e-9, "{r3:?} {r:?}");
+        }
+        for k in 0..3 {
+            assert!((t3[k] - t[k]).abs() < 1e-6, "{t3:?} {t:?}");
+        }
     }
 
     #[test]

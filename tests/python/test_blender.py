@@ -270,3 +270,35 @@ def test_bad_input_is_named_and_leaves_nothing(tmp_path, trace):
     assert r.returncode != 0 and "give one or the other" in r.stderr
     cams.unlink()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old.trace.json"]
+
+
+def test_compare_frames_of_a_robot_whose_base_is_not_the_origin(tmp_path):
+    # pick_block_plate copied with its robot base moved (10 cm forward, 5 cm left) and turned 10°
+    # about z: the synthetic source frames (r2g render) are posed in the robot base
+    # frame, BOP's world, so both renderers must place the source cameras through the base pose,
+    # and the cameras Blender writes beside its renders must come back in the base frame.
+    gym = tmp_path / "moved_base"
+    gym.mkdir()
+    text = (ROOT / "gyms" / GYM / "scene.toml").read_text()
+    urdf = (ROOT / "robots" / "panda" / "panda.urdf").resolve()
+    text = text.replace('urdf = "../../robots/panda/panda.urdf"', f'urdf = "{urdf}"')
+    assert "base_position_m = [0.0, 0.0, 0.0]" in text
+    text = text.replace("base_position_m = [0.0, 0.0, 0.0]",
+                        "base_position_m = [0.1, 0.05, 0.0]\nbase_yaw_rad = 0.1745")
+    (gym / "scene.toml").write_text(text)
+    for f in ("demo.csv", "keyframes.toml"):
+        if (ROOT / "gyms" / GYM / f).is_file():
+            (gym / f).write_bytes((ROOT / "gyms" / GYM / f).read_bytes())
+    src = tmp_path / "frames"
+    r2g("render", gym, "--out", src)
+    sheet = tmp_path / "sheet.png"
+    r = r2g("compare", gym, "--frames", src, "--samples", "1", "--out", sheet)
+    report = json.loads(r.stdout.strip().splitlines()[-1])
+    given = json.loads((src / "scene_camera.json").read_text())
+    written = json.loads((tmp_path / "sheet.renders" / "blender" / "scene_camera.json").read_text())
+    for row in report["rows"]:
+        a, b = given[str(row["source_image"])], written[str(row["blender_image"])]
+        assert np.allclose(a["cam_R_w2c"], b["cam_R_w2c"], atol=1e-6), (a, b)
+        assert np.allclose(a["cam_t_w2c"], b["cam_t_w2c"], atol=1e-3), (a, b)
+        for name, o in row["objects"].items():
+            assert o["mujoco_px"] > 20 and o["iou"] >= IOU_MIN, (row["camera"], name, o)
