@@ -1,7 +1,9 @@
 //! `r2g bench batch`: episodes per minute of lockstep demonstration replays and of scripted
 //! agent episodes (recorded conversations: synthetic model answers) at 1, 2 and N workers, on
 //! local workers and as tasks of a local Ray cluster this benchmark starts and stops, with Ray's
-//! overhead per task and the parallel efficiency, all in one run.
+//! overhead per task and the parallel efficiency, all in one run; then Ray's overhead per task
+//! across three nodes made of namespaces on this machine (`fleet/py/r2g_netns.py bench`, root
+//! only; the nodes share the cores, so it is an overhead, never a speed-up).
 
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -171,7 +173,43 @@ pub fn run(max_workers: usize, replays: usize, agents: usize) -> anyhow::Result<
         overhead("replay").unwrap_or(f64::NAN),
         overhead("agent").unwrap_or(f64::NAN)
     );
+    let multinode = multinode(replays);
+    match &multinode {
+        Ok(m) => println!(
+            "Ray overhead per task across {} namespaced nodes (head to workers, 1 at a time; the nodes share these \
+             {cores} cores: an overhead, not a speed-up): replay {:.0} ms, jobs per node {}",
+            m["nodes"],
+            m["ray_overhead_per_task_ms"].as_f64().unwrap_or(f64::NAN),
+            m["jobs_per_node"]
+        ),
+        Err(e) => println!("multi-node row left out: {e:#}"),
+    }
+    let mut figures = figures;
+    figures["multinode"] = multinode.unwrap_or_else(|e| json!({"error": format!("{e:#}")}));
     println!("* more workers than cores: oversubscription");
     println!("{figures}");
     Ok(figures)
+}
+
+/// The multi-node row: `fleet/py/r2g_netns.py bench` (a head and two workers in network and
+/// mount namespaces of their own on this machine; root only), `jobs` replays one at a time
+/// through Ray across them and on a local worker, Ray's overhead per task.
+fn multinode(jobs: usize) -> anyhow::Result<Value> {
+    let root = agent_host::session::root();
+    let r2g = std::env::current_exe().context("locating r2g")?;
+    let out = Command::new(root.join(".venv/bin/python"))
+        .arg(root.join("fleet/py/r2g_netns.py"))
+        .args(["bench", "--jobs", &jobs.max(1).to_string(), "--r2g"])
+        .arg(&r2g)
+        .current_dir(&root)
+        .stdin(Stdio::null())
+        .output()
+        .context("starting fleet/py/r2g_netns.py")?;
+    if !out.status.success() {
+        let err = String::from_utf8_lossy(&out.stderr);
+        bail!("r2g_netns.py bench failed ({}): {}", out.status, err.trim().lines().last().unwrap_or(""));
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text.lines().rev().find(|l| l.starts_with('{')).context("r2g_netns.py bench printed no result")?;
+    Ok(serde_json::from_str(line)?)
 }

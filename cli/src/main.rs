@@ -664,7 +664,8 @@ enum BenchCmd {
     },
     /// Episodes per minute of lockstep demonstration replays and scripted agent episodes at 1, 2
     /// and N workers, on local workers and as tasks of a local Ray cluster it starts and stops;
-    /// Ray's overhead per task and the parallel efficiency.
+    /// Ray's overhead per task and the parallel efficiency; as root, Ray's overhead per task
+    /// across three nodes made of namespaces on this machine (overhead, not speed-up).
     Batch {
         /// The largest worker count (above the cores: oversubscription, labelled so).
         #[arg(long, default_value_t = 4)]
@@ -1007,19 +1008,29 @@ fn import(which: ImportCmd) -> anyhow::Result<i32> {
 }
 
 /// Augmentation's gate as fleet jobs: `r2g validate <variant> --out <variant>` on a worker or
-/// a Ray task, its evidence.json read back.
+/// a Ray task, its evidence.json read back. On Ray one driver serves the whole augmentation
+/// (started with the first candidate): the candidates validated at once run as tasks side by
+/// side.
 fn fleet_validator(backend: fleet::Backend) -> real2sim::augment::Validator {
+    let pool: std::sync::Arc<std::sync::OnceLock<Result<fleet::Pool, String>>> = Default::default();
     std::sync::Arc::new(move |dir: &std::path::Path| {
         // Absolute: the job runs wherever a worker is, in whatever directory it has.
         let dir =
             &std::path::absolute(dir).map_err(|source| real2sim::Error::Io { path: dir.to_path_buf(), source })?;
         let args = vec!["validate".to_string(), dir.display().to_string(), "--out".into(), dir.display().to_string()];
         let mut failure = None;
-        fleet::run(&[fleet::Job { id: 0, args }], &backend, dir, |r| {
+        let mut check = |r: serde_json::Value| {
             if r["value"].is_null() {
                 failure = Some(format!("the validation job failed: {}", r.get("error").unwrap_or(&r["stderr_tail"])));
             }
-        })?;
+        };
+        if matches!(backend, fleet::Backend::Ray { .. }) {
+            let pool = pool.get_or_init(|| fleet::Pool::new(&backend).map_err(|e| format!("{e:#}")));
+            let pool = pool.as_ref().map_err(|e| anyhow::anyhow!("{e}"))?;
+            check(pool.run(args)?);
+        } else {
+            fleet::run(&[fleet::Job { id: 0, args }], &backend, dir, check)?;
+        }
         let ev = std::fs::read_to_string(dir.join("evidence.json")).map_err(|e| {
             anyhow::anyhow!(
                 "{}: no evidence.json ({e}){}",
@@ -1055,7 +1066,8 @@ fn augment(gym: &str, o: real2sim::augment::Options) -> anyhow::Result<i32> {
         "parent": r.parent, "pool": o.out.display().to_string(), "candidates": r.candidates, "kept": r.kept.len(),
         "deduplicated": r.deduplicated.len(), "dropped": r.dropped.len(), "feasible": r.feasible, "per_factor": r.per_factor,
         "validated_per_minute": r.validated_per_minute, "gate_runs": r.gate_runs, "wall_s": r.wall_s,
-        "contact_sheet": r.contact_sheet,
+        "contact_sheet": r.contact_sheet, "fleet_drivers_started": fleet::drivers_started(),
+        "fleet_nodes": fleet::nodes_seen(),
     });
     println!("{line}");
     Ok(0)

@@ -3,7 +3,9 @@ with one JSON line) on local worker threads or as Ray tasks, and streams each re
 JSON line on stdout, in the order they finish.
 
     python fleet/py/r2g_fleet.py run --jobs JOBS.json (--local N | --ray auto|ADDRESS) [--retries 2]
+    python fleet/py/r2g_fleet.py serve --ray auto|ADDRESS   # one driver, jobs as JSON lines on stdin
     python fleet/py/r2g_fleet.py resources        # this node's r2g_gym capacity, for `ray start`
+    python fleet/py/r2g_fleet.py sweep            # by hand: clean up after this node's dead jobs
 
 Every job runs the same way wherever it runs (`run_job`): `r2g` in a session of its own, dying
 with the worker (PR_SET_PDEATHSIG), on an iceoryx2 configuration of its own (its own root path
@@ -207,6 +209,10 @@ def sweep() -> list[str]:
             if s is None or s[1] == int(facts.get("leader_start", -1)):
                 # The leader is gone or still the job's own (not a reused pid): its session.
                 _kill_session(leader, int(facts.get("leader_start", 0)), tag)
+        part = facts.get("part")
+        if isinstance(part, str) and f".part-{tag}" in os.path.basename(part):
+            # The unfinished output folder of the dead try (on the shared mount, if any).
+            shutil.rmtree(part, ignore_errors=True)
         _remove_files(mine, tag)
         swept.append(tag)
     return swept
@@ -220,15 +226,63 @@ def _die_with_worker() -> Callable[[], None]:
     return lambda: libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
 
 
+def _part(out: str, tag: str) -> str:
+    """Where a job whose output folder is `out` writes until it ends: a hidden sibling named by
+    the job's tag (`.episode-003.part-r2gj...`), renamed to `out` when the job has ended."""
+    parent, name = os.path.split(out.rstrip("/"))
+    return os.path.join(parent, f".{name}.part-{tag}")
+
+
+def _finish_part(part: str, out: str) -> None:
+    """Moves a finished job's folder `part` to `out` (an earlier attempt's folder, if one got
+    there, is replaced), its own path in its top-level text records rewritten to `out`."""
+    if not os.path.isdir(part):
+        return
+    olds, new = {part.encode(), os.path.realpath(part).encode()}, out.rstrip("/").encode()
+    for entry in os.scandir(part):
+        if entry.is_file(follow_symlinks=False) and entry.stat().st_size < 8 * 2**20:
+            body = Path(entry.path).read_bytes()
+            if any(old in body for old in olds):
+                for old in olds:
+                    body = body.replace(old, new)
+                tmp = f"{entry.path}.fix-{os.getpid()}"
+                Path(tmp).write_bytes(body)
+                os.replace(tmp, entry.path)
+    if os.path.lexists(out):
+        stale = f"{part}.stale"
+        os.rename(out, stale)
+        os.rename(part, out)
+        shutil.rmtree(stale, ignore_errors=True)
+    else:
+        os.rename(part, out)
+
+
+def _node() -> dict[str, Any]:
+    """Where this job runs: the host name (the same in every container or namespace of a
+    machine), and under Ray the node id (the driver adds the node's address)."""
+    node: dict[str, Any] = {"host": socket.gethostname(), "id": None, "ip": None}
+    if "ray" in sys.modules:
+        import ray
+
+        if ray.is_initialized():
+            node["id"] = ray.get_runtime_context().get_node_id()
+    return node
+
+
 def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
     """Runs one job here: `r2g <job["args"]>`, isolated as the module docstring says, in the
-    driver's working directory when this node has it. Returns its result: the exit status, its
-    last JSON line, the tail of its stderr, where it ran."""
+    driver's working directory when this node has it. A job that names its output folder
+    (`job["out"]`, one of its arguments) writes to a hidden sibling of it, renamed to it when
+    the job ends: a folder of that name is always whole, and a try cut short leaves only the
+    sibling, removed by the node's sweep or the driver. Returns its result: the exit status,
+    its last JSON line, the tail of its stderr, where it ran."""
     sweep()
     tag = f"r2gj{uuid.uuid4().hex[:10]}"
     d = jobs_root() / tag
     d.mkdir(mode=0o700)
     me = _stat(os.getpid())
+    out = job.get("out")
+    part = _part(out, tag) if out else None
     facts: dict[str, Any] = {
         "job": job["id"],
         "boot_id": _boot_id(),
@@ -237,6 +291,7 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
         "leader": 0,
         "leader_start": 0,
         "prefix": f"{tag}_",
+        "part": part,
     }
     # The facts first: from here on a sweep can tell whether this job's worker lives.
     _write_facts(d, facts)
@@ -251,8 +306,9 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
     stderr_path = d / "stderr.txt"
     t0 = time.monotonic()
     with open(stderr_path, "wb") as err:
+        args = [part if a == out and part else a for a in job["args"]]
         proc = subprocess.Popen(
-            [r2g, *job["args"]],
+            [r2g, *args],
             stdout=subprocess.PIPE,
             stderr=err,
             stdin=subprocess.DEVNULL,
@@ -266,20 +322,25 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
         facts["leader"], facts["leader_start"] = proc.pid, leader[1] if leader else 0
         _write_facts(d, facts)
         try:
-            out, _ = proc.communicate()
+            stdout, _ = proc.communicate()
         finally:
             # Whatever is left of the session (an instance's processes) goes with the job.
             _kill_session(proc.pid, int(facts["leader_start"]), tag)
+    if part and out:
+        real = os.path.realpath(part)
+        _finish_part(part, out)
+        for p in {part, real}:
+            stdout = stdout.replace(p.encode(), out.rstrip("/").encode())
     result = {
         "id": job["id"],
         "rc": proc.returncode,
         "value": None,
         "stderr_tail": stderr_path.read_text(errors="replace")[-1500:],
-        "node": socket.gethostname(),
+        "node": _node(),
         "worker": os.getpid(),
         "wall_s": time.monotonic() - t0,
     }
-    for line in reversed(out.decode(errors="replace").splitlines()):
+    for line in reversed(stdout.decode(errors="replace").splitlines()):
         if line.startswith("{"):
             try:
                 result["value"] = json.loads(line)
@@ -328,12 +389,18 @@ def _recorded_cluster() -> str | None:
         return None
 
 
-def _ray(
-    jobs: list[dict[str, Any]], r2g: str, address: str, retries: int, max_concurrent: int | None
-) -> Iterator[dict[str, Any]]:
-    if "RAY_AUTH_MODE" not in os.environ and (Path.home() / ".ray" / "auth_token").is_file():
-        # Clusters started by `ray start` (2.5x and later) want a token by default; a driver on a
-        # node that has one (copied there, see fleet/MULTINODE.md) presents it. Read at import.
+def _connect(address: str) -> Any:
+    """Joins the Ray cluster at `address` (`auto`: the running one, else one of our own on
+    loopback for this run alone) and checks that it offers gym slots. Returns the module."""
+    has_token = (
+        os.environ.get("RAY_AUTH_TOKEN")
+        or os.environ.get("RAY_AUTH_TOKEN_PATH")
+        or (Path.home() / ".ray" / "auth_token").is_file()
+    )
+    if "RAY_AUTH_MODE" not in os.environ and has_token:
+        # Clusters started by `ray start` on nodes with a token want it; a driver on a node
+        # that has one (see fleet/MULTINODE.md) presents it. `ray.init` with an address does
+        # not look for one by itself. Read when Ray is imported.
         os.environ["RAY_AUTH_MODE"] = "token"
     if address == "auto":
         # The cluster `auto` means, resolved once here (none answering: one of our own).
@@ -360,17 +427,44 @@ def _ray(
         )
     else:
         ray.init(address=address, log_to_driver=False)
-    try:
-        if not ray.cluster_resources().get(RESOURCE, 0):
-            raise SystemExit(
-                f"the Ray cluster offers no '{RESOURCE}' resource: start each node with "
-                f"--resources='{{\"{RESOURCE}\": N}}' (python fleet/py/r2g_fleet.py resources prints N)"
-            )
-        # Each task takes one gym slot; at most `max_concurrent` are in flight, the next one
-        # submitted as one finishes (a task never waits for more slots than a node has).
-        task = ray.remote(run_job).options(
-            resources={RESOURCE: 1}, num_cpus=0, max_retries=retries, retry_exceptions=True
+    if not ray.cluster_resources().get(RESOURCE, 0):
+        ray.shutdown()
+        raise SystemExit(
+            f"the Ray cluster offers no '{RESOURCE}' resource: start each node with "
+            f"--resources='{{\"{RESOURCE}\": N}}' (python fleet/py/r2g_fleet.py resources prints N)"
         )
+    return ray
+
+
+class _Nodes:
+    """Each Ray node's address by its id, from the cluster's node table (read again when a
+    result names a node not seen yet: one that joined after the last read)."""
+
+    def __init__(self, ray: Any) -> None:
+        self.ray, self.ips = ray, {}
+
+    def name(self, result: dict[str, Any]) -> dict[str, Any]:
+        node = result.get("node")
+        if isinstance(node, dict) and node.get("id"):
+            if node["id"] not in self.ips:
+                self.ips = {n["NodeID"]: n["NodeManagerAddress"] for n in self.ray.nodes()}
+            node["ip"] = self.ips.get(node["id"])
+        return result
+
+
+def _task(ray: Any, retries: int) -> Any:
+    # Each task takes one gym slot; a task whose worker or node died runs again elsewhere.
+    return ray.remote(run_job).options(resources={RESOURCE: 1}, num_cpus=0, max_retries=retries, retry_exceptions=True)
+
+
+def _ray(
+    jobs: list[dict[str, Any]], r2g: str, address: str, retries: int, max_concurrent: int | None
+) -> Iterator[dict[str, Any]]:
+    ray = _connect(address)
+    try:
+        task, nodes = _task(ray, retries), _Nodes(ray)
+        # At most `max_concurrent` in flight, the next one submitted as one finishes (a task
+        # never waits for more slots than a node has).
         cap = max(1, max_concurrent) if max_concurrent else len(jobs)
         queue = list(reversed(jobs))
         refs: dict[Any, dict[str, Any]] = {}
@@ -382,7 +476,51 @@ def _ray(
             for ref in done:
                 job = refs.pop(ref)
                 try:
-                    yield ray.get(ref)
+                    yield nodes.name(ray.get(ref))
+                except Exception as e:  # the task failed on every try
+                    yield _failed(job, e)
+    finally:
+        ray.shutdown()
+
+
+def _serve(r2g: str, address: str, retries: int) -> Iterator[dict[str, Any]]:
+    """One driver for a stream of jobs: each JSON line on stdin is a job, submitted as a Ray
+    task at once (as many in flight as the caller sends); results come back as they finish.
+    Ends when stdin ends and every job has its result."""
+    import queue as q
+
+    ray = _connect(address)
+    incoming: q.Queue[dict[str, Any] | None] = q.Queue()
+
+    def read() -> None:
+        for line in sys.stdin:
+            if line.strip():
+                incoming.put(json.loads(line))
+        incoming.put(None)
+
+    threading.Thread(target=read, daemon=True).start()
+    try:
+        task, nodes = _task(ray, retries), _Nodes(ray)
+        refs: dict[Any, dict[str, Any]] = {}
+        open_ = True
+        while open_ or refs:
+            try:
+                # Block for the next job only when nothing runs.
+                while True:
+                    job = incoming.get(timeout=None if not refs else 0.0) if open_ else None
+                    if job is None:
+                        open_ = False
+                        break
+                    refs[task.remote(job, r2g)] = job
+            except q.Empty:
+                pass
+            if not refs:
+                continue
+            done, _ = ray.wait(list(refs), num_returns=1, timeout=0.05)
+            for ref in done:
+                job = refs.pop(ref)
+                try:
+                    yield nodes.name(ray.get(ref))
                 except Exception as e:  # the task failed on every try
                     yield _failed(job, e)
     finally:
@@ -400,6 +538,10 @@ def main(argv: list[str]) -> int:
     where.add_argument("--ray", metavar="ADDRESS", help="'auto' or a Ray cluster's address")
     r.add_argument("--retries", type=int, default=2, help="tries after a failed one (Ray only)")
     r.add_argument("--max-concurrent", type=int, help="at most this many jobs at once (Ray only)")
+    v = sub.add_parser("serve", help="one Ray driver for jobs sent as JSON lines on stdin, results on stdout")
+    v.add_argument("--r2g", required=True, help="the r2g binary (the same path on every node)")
+    v.add_argument("--ray", required=True, metavar="ADDRESS", help="'auto' or a Ray cluster's address")
+    v.add_argument("--retries", type=int, default=2, help="tries after a failed one")
     sub.add_parser("resources", help="this node's resources for `ray start --resources=...`")
     sub.add_parser("sweep", help="clean up after this node's dead jobs")
     a = ap.parse_args(argv)
@@ -409,8 +551,14 @@ def main(argv: list[str]) -> int:
     if a.cmd == "sweep":
         print(json.dumps({"swept": sweep()}))
         return 0
-    jobs = json.loads(Path(a.jobs).read_text())
     results: Callable[[], Iterator[dict[str, Any]]]
+    if a.cmd == "serve":
+        results = lambda: _serve(a.r2g, a.ray, a.retries)  # noqa: E731
+        for res in results():
+            sys.stdout.write(json.dumps(res) + "\n")
+            sys.stdout.flush()
+        return 0
+    jobs = json.loads(Path(a.jobs).read_text())
     if a.local is not None:
         results = lambda: _local(jobs, a.r2g, a.local)  # noqa: E731
     else:

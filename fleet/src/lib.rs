@@ -1,8 +1,11 @@
 #![doc = include_str!("../README.md")]
 
-use std::io::BufRead;
+use std::collections::HashMap;
+use std::io::{BufRead, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{mpsc, Arc, Mutex};
 
 use anyhow::{bail, Context};
 use serde_json::{json, Value};
@@ -43,24 +46,130 @@ fn root() -> PathBuf {
     runtime::launch::gyms_dir().parent().map(Path::to_path_buf).unwrap_or_default()
 }
 
-/// Runs `jobs` on `backend`, calling `on_result` with each job's result as it finishes (in the
-/// order they finish): `{"id", "rc", "value" (the job's JSON line or null), "stderr_tail",
-/// "node", "worker", "wall_s"}`, or `{"id", "error"}` for a job that failed on every try.
-/// `work_dir` keeps the job list. The driver is `fleet/py/r2g_fleet.py` in the project venv; it
-/// imports Ray only for [`Backend::Ray`].
-pub fn run(jobs: &[Job], backend: &Backend, work_dir: &Path, mut on_result: impl FnMut(Value)) -> anyhow::Result<()> {
+static DRIVERS: AtomicUsize = AtomicUsize::new(0);
+static NODES: Mutex<std::collections::BTreeMap<String, usize>> = Mutex::new(std::collections::BTreeMap::new());
+
+/// The Ray nodes (`"<node id>@<address>"`) that results of this process came from so far, with
+/// how many each; empty off Ray.
+pub fn nodes_seen() -> std::collections::BTreeMap<String, usize> {
+    NODES.lock().unwrap_or_else(|e| e.into_inner()).clone()
+}
+
+/// How many fleet drivers (`r2g_fleet.py` processes; under Ray each one a `ray.init`) this
+/// process has started so far.
+pub fn drivers_started() -> usize {
+    DRIVERS.load(Ordering::Relaxed)
+}
+
+/// Subcommands whose `--out` is a folder of the job's own (written whole or not at all, see
+/// [`run`]); other jobs (`replay`, `validate`) share or reuse theirs.
+const OWN_OUT: &[&str] = &["episode"];
+
+/// The job's own output folder, if it has one ([`OWN_OUT`]).
+fn own_out(job: &Job) -> Option<String> {
+    if !OWN_OUT.contains(&job.args.first()?.as_str()) {
+        return None;
+    }
+    let i = job.args.iter().position(|a| a == "--out")?;
+    job.args.get(i + 1).filter(|o| Path::new(o).is_absolute()).cloned()
+}
+
+/// Removes what tries cut short left of the jobs' own output folders (`.NAME.part-<tag>`
+/// beside each): called once no try of these jobs can still run here.
+fn remove_parts(jobs: &[Job]) {
+    for out in jobs.iter().filter_map(own_out) {
+        let out = Path::new(&out);
+        let (Some(parent), Some(name)) = (out.parent(), out.file_name()) else { continue };
+        let prefix = format!(".{}.part-", name.to_string_lossy());
+        for e in std::fs::read_dir(parent).into_iter().flatten().flatten() {
+            if e.file_name().to_string_lossy().starts_with(&prefix) {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+    }
+}
+
+/// The job as the driver reads it.
+fn job_json(j: &Job, cwd: &Path) -> Value {
+    json!({"id": j.id, "args": j.args, "cwd": cwd, "out": own_out(j)})
+}
+
+/// Whether the Ray head at `address` (host:port) answers at all.
+fn head_answers(address: &str) -> bool {
+    use std::net::ToSocketAddrs;
+    address
+        .to_socket_addrs()
+        .ok()
+        .and_then(|mut a| a.next())
+        .is_some_and(|a| std::net::TcpStream::connect_timeout(&a, std::time::Duration::from_secs(3)).is_ok())
+}
+
+/// A driver that has exited with `status`: why, in words naming the head when it is gone.
+fn driver_failed(backend: &Backend, status: std::process::ExitStatus, results: usize, jobs: usize) -> anyhow::Error {
+    match backend {
+        Backend::Ray { address, .. } if address != "auto" && !head_answers(address) => anyhow::anyhow!(
+            "the Ray head at {address} does not answer (lost): the fleet driver stopped ({status}) after \
+             {results} of {jobs} results (a job that did not finish left no output folder under its own name)"
+        ),
+        _ => anyhow::anyhow!(
+            "the fleet driver failed ({status}) after {results} of {jobs} results; see its message above"
+        ),
+    }
+}
+
+/// The fleet driver's program: the venv's Python and `fleet/py/r2g_fleet.py`.
+fn driver() -> anyhow::Result<(PathBuf, PathBuf)> {
     let root = root();
-    let python = root.join(".venv/bin/python");
     let driver = root.join("fleet/py/r2g_fleet.py");
     if !driver.is_file() {
         bail!("{} is missing: run from a checkout (make build)", driver.display());
     }
+    Ok((root.join(".venv/bin/python"), driver))
+}
+
+/// The driver dies with us.
+fn die_with_parent(cmd: &mut Command) {
+    // SAFETY: prctl in the child before exec; async-signal-safe.
+    unsafe {
+        use std::os::unix::process::CommandExt;
+        cmd.pre_exec(|| {
+            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM, 0, 0, 0);
+            Ok(())
+        });
+    }
+}
+
+/// Where a job ran, as results name it: `{"host", "id" (the Ray node id), "ip" (the Ray
+/// node's address)}`; id and address are null off Ray.
+fn with_node(mut r: Value) -> Value {
+    if let (Some(id), Some(ip)) = (r["node"]["id"].as_str(), r["node"]["ip"].as_str()) {
+        *NODES.lock().unwrap_or_else(|e| e.into_inner()).entry(format!("{id}@{ip}")).or_default() += 1;
+    }
+    if let (Some(v), Some(node)) = (r.get("value").filter(|v| v.is_object()).cloned(), r.get("node").cloned()) {
+        let mut v = v;
+        v["node"] = node;
+        r["value"] = v;
+    }
+    r
+}
+
+/// Runs `jobs` on `backend`, calling `on_result` with each job's result as it finishes (in the
+/// order they finish): `{"id", "rc", "value" (the job's JSON line, with `"node"` added, or
+/// null), "stderr_tail", "node" (see [`with_node`]), "worker", "wall_s"}`, or `{"id",
+/// "error"}` for a job that failed on every try. `work_dir` keeps the job list. The driver is
+/// `fleet/py/r2g_fleet.py` in the project venv; it imports Ray only for [`Backend::Ray`]. A job
+/// of [`OWN_OUT`] writes its `--out` folder under a hidden name and renames it when it ends, so
+/// that folder is whole or absent; what cut-short tries left is removed when the driver ends,
+/// however it ends. When the driver fails on a Ray head that no longer answers, the error
+/// names the head.
+pub fn run(jobs: &[Job], backend: &Backend, work_dir: &Path, mut on_result: impl FnMut(Value)) -> anyhow::Result<()> {
+    let (python, driver) = driver()?;
     std::fs::create_dir_all(work_dir).with_context(|| format!("creating {}", work_dir.display()))?;
     let list = work_dir.join(format!(".fleet-jobs-{}.json", std::process::id()));
     // Jobs run in this working directory wherever it exists (a relative path in their arguments
     // means the same there as here; see MULTINODE.md for other nodes).
     let cwd = std::env::current_dir().context("the working directory")?;
-    let body: Vec<Value> = jobs.iter().map(|j| json!({"id": j.id, "args": j.args, "cwd": cwd})).collect();
+    let body: Vec<Value> = jobs.iter().map(|j| job_json(j, &cwd)).collect();
     std::fs::write(&list, serde_json::to_vec(&body)?)?;
     let r2g = std::env::current_exe().context("locating r2g")?;
     let mut cmd = Command::new(&python);
@@ -75,29 +184,134 @@ pub fn run(jobs: &[Job], backend: &Backend, work_dir: &Path, mut on_result: impl
             &mut cmd
         }
     };
-    // SAFETY: prctl in the child before exec; async-signal-safe.
-    unsafe {
-        use std::os::unix::process::CommandExt;
-        cmd.pre_exec(|| {
-            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM, 0, 0, 0);
-            Ok(())
-        });
-    }
+    die_with_parent(&mut cmd);
     let mut child = cmd.stdout(Stdio::piped()).stdin(Stdio::null()).spawn().context("starting the fleet driver")?;
+    DRIVERS.fetch_add(1, Ordering::Relaxed);
     let out = child.stdout.take().context("driver stdout")?;
+    let mut results = 0;
     for line in std::io::BufReader::new(out).lines() {
-        let line = line?;
+        let Ok(line) = line else { break };
         match serde_json::from_str::<Value>(&line) {
-            Ok(v) => on_result(v),
+            Ok(v) => {
+                results += 1;
+                on_result(with_node(v))
+            }
             Err(_) => eprintln!("{line}"),
         }
     }
     let status = child.wait()?;
     let _ = std::fs::remove_file(&list);
+    remove_parts(jobs);
     if !status.success() {
-        bail!("the fleet driver failed ({status}); see its message above");
+        return Err(driver_failed(backend, status, results, jobs.len()));
     }
     Ok(())
+}
+
+/// One Ray driver for jobs submitted one by one, from any thread, over its lifetime
+/// (`r2g_fleet.py serve`): it joins the cluster once, and every job submitted while others run
+/// runs beside them as a task of its own. [`Pool::run`] blocks until that job's result.
+pub struct Pool {
+    backend: Backend,
+    stdin: Mutex<Option<ChildStdin>>,
+    child: Mutex<Child>,
+    waiting: Arc<Mutex<HashMap<usize, mpsc::Sender<Value>>>>,
+    next: AtomicUsize,
+    cwd: PathBuf,
+}
+
+impl Pool {
+    /// Starts the driver on a [`Backend::Ray`] (it joins the cluster before the first job).
+    pub fn new(backend: &Backend) -> anyhow::Result<Self> {
+        let Backend::Ray { address, .. } = backend else { bail!("a fleet pool runs on Ray only") };
+        let (python, driver) = driver()?;
+        let r2g = std::env::current_exe().context("locating r2g")?;
+        let mut cmd = Command::new(&python);
+        cmd.arg(&driver).args(["serve", "--ray", address, "--r2g"]).arg(&r2g);
+        die_with_parent(&mut cmd);
+        cmd.stdout(Stdio::piped()).stdin(Stdio::piped());
+        let waiting: Arc<Mutex<HashMap<usize, mpsc::Sender<Value>>>> = Arc::default();
+        let w = waiting.clone();
+        // The driver is started by the thread that reads its results, which lives as long as
+        // it does: PR_SET_PDEATHSIG fires when the thread that started a child ends, and the
+        // first caller may be a short-lived worker thread.
+        let (started_tx, started_rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            let mut child = match cmd.spawn() {
+                Ok(c) => c,
+                Err(e) => {
+                    let _ = started_tx.send(Err(e));
+                    return;
+                }
+            };
+            let Some(out) = child.stdout.take() else { return };
+            let _ = started_tx.send(Ok(child));
+            for line in std::io::BufReader::new(out).lines() {
+                let Ok(line) = line else { break };
+                match serde_json::from_str::<Value>(&line) {
+                    Ok(v) => {
+                        let id = v["id"].as_u64().unwrap_or(u64::MAX) as usize;
+                        if let Some(tx) = w.lock().unwrap_or_else(|e| e.into_inner()).remove(&id) {
+                            let _ = tx.send(with_node(v));
+                        }
+                    }
+                    Err(_) => eprintln!("{line}"),
+                }
+            }
+            // The driver is gone: whoever still waits hears it (their senders drop).
+            w.lock().unwrap_or_else(|e| e.into_inner()).clear();
+        });
+        let mut child = started_rx.recv().context("starting the fleet driver")?.context("starting the fleet driver")?;
+        DRIVERS.fetch_add(1, Ordering::Relaxed);
+        let stdin = child.stdin.take();
+        Ok(Self {
+            backend: backend.clone(),
+            stdin: Mutex::new(stdin),
+            child: Mutex::new(child),
+            waiting,
+            next: AtomicUsize::new(0),
+            cwd: std::env::current_dir().context("the working directory")?,
+        })
+    }
+
+    /// Runs `args` as one job and returns its result (as [`run`] reports it).
+    pub fn run(&self, args: Vec<String>) -> anyhow::Result<Value> {
+        let id = self.next.fetch_add(1, Ordering::Relaxed);
+        let job = Job { id, args };
+        let (tx, rx) = mpsc::channel();
+        self.waiting.lock().unwrap_or_else(|e| e.into_inner()).insert(id, tx);
+        {
+            let mut stdin = self.stdin.lock().unwrap_or_else(|e| e.into_inner());
+            let sent = stdin
+                .as_mut()
+                .map(|s| writeln!(s, "{}", job_json(&job, &self.cwd)).and_then(|_| s.flush()))
+                .transpose();
+            if !matches!(sent, Ok(Some(()))) {
+                self.waiting.lock().unwrap_or_else(|e| e.into_inner()).remove(&id);
+                return Err(self.failed());
+            }
+        }
+        let r = rx.recv().map_err(|_| self.failed());
+        remove_parts(std::slice::from_ref(&job));
+        r
+    }
+
+    /// Why the driver is gone.
+    fn failed(&self) -> anyhow::Error {
+        let mut child = self.child.lock().unwrap_or_else(|e| e.into_inner());
+        match child.wait() {
+            Ok(status) => driver_failed(&self.backend, status, 0, 1),
+            Err(e) => anyhow::anyhow!("the fleet driver: {e}"),
+        }
+    }
+}
+
+impl Drop for Pool {
+    fn drop(&mut self) {
+        // End of input: the driver finishes what runs and exits.
+        self.stdin.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let _ = self.child.lock().unwrap_or_else(|e| e.into_inner()).wait();
+    }
 }
 
 /// Replays of the gyms' demonstrations, `seeds` seeds each (0, 1, ...), as jobs on `backend`;
