@@ -20,6 +20,7 @@ input problem exits 2 with one line "error: ..." on stderr.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -39,6 +40,7 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(ROOT / "agent-host" / "py" / "lib"))
 
 import r2g_reconstruct_io as rio  # noqa: E402
+import r2g_reconstruct_parts as rparts  # noqa: E402
 from r2g_reconstruct_io import FramesError  # noqa: E402
 import robo_perception as rp  # noqa: E402
 
@@ -123,7 +125,10 @@ def scene_toml(model: dict) -> str:
     for c in model["cameras"]:
         out.append(_table("cameras", c, array=True))
     for o in model["objects"]:
-        out.append(_table("objects", {k: v for k, v in o.items() if not k.startswith("_")}, array=True))
+        d = {k: v for k, v in o.items() if not k.startswith("_")}
+        if "parts" in d:
+            d["parts"] = [{k: v for k, v in p.items() if not k.startswith("_")} for p in d["parts"]]
+        out.append(_table("objects", d, array=True))
     task = model["task"]
     out.append(_table("task", task))
     return "\n".join(out)
@@ -285,9 +290,15 @@ def robot_pixels(frames: list, urdf: str, r2g: str, work: Path, tcp_link: str = 
 # Fitting
 # --------------------------------------------------------------------------------------------
 
-def fit_object(o: Any, plane: Any, others: dict, force: Optional[str] = None) -> dict:
+def fit_object(o: Any, plane: Any, others: dict, force: Optional[str] = None,
+               fs: Optional["rparts.FreeSpace"] = None, foreign: Optional[np.ndarray] = None) -> dict:
     """One segmented object -> an object spec (dict), with the fit's evidence under "_fit".
-    `force` (one of PRIMITIVES) overrides the shape the evidence picks (the model's choice)."""
+    `force` (one of PRIMITIVES) overrides the shape the evidence picks (the model's choice).
+    `fs` (the space the source views saw through): with it, an object the footprint would make
+    a box or a hull is first tried as a disc standing on edge and as an open round body with
+    attachments (a mug), and a box or hull that holds space a view saw empty is decomposed into
+    convex parts (r2g_reconstruct_parts); `foreign` (the other objects' points) counts as space
+    the object cannot hold too."""
     P = o.points
     h = plane.distance(P)
     xy = P[:, :2]
@@ -318,6 +329,11 @@ def fit_object(o: Any, plane: Any, others: dict, force: Optional[str] = None) ->
                 shape = "sphere"
     elif fill >= 0.85:
         shape = "box"
+    special = None
+    if force is None and fs is not None and shape in ("box", "mesh"):
+        special = _free_space_fit(o, plane, bottom, centre2, fs, foreign, evidence)
+        if special is not None:
+            shape = special[0]
     if force is not None:
         evidence["evidence_chose"] = shape
         shape = force
@@ -325,7 +341,9 @@ def fit_object(o: Any, plane: Any, others: dict, force: Optional[str] = None) ->
     evidence["chosen"] = shape
     cz_base = plane_z(plane, *(circ_c if shape in ("cylinder", "sphere", "bowl") else centre2))
     spec: dict = {}
-    if shape == "box":
+    if special is not None:
+        spec, volume = special[1], special[2]
+    elif shape == "box":
         yaw = math.atan2(axes[1, 0], axes[0, 0])
         yaw = (yaw + math.pi / 2) % math.pi - math.pi / 2
         hx, hy, hz = ext[0] / 2, ext[1] / 2, height / 2
@@ -352,6 +370,32 @@ def fit_object(o: Any, plane: Any, others: dict, force: Optional[str] = None) ->
     return spec
 
 
+SOLID_CLEARANCE_M = 0.0015
+"""Another object's fitted solid counts as not-ours this much beyond its surface, so the parts
+cut around it leave it room instead of touching (and squeezing) it."""
+
+
+def solid_samples(spec: dict, step: float = 0.003, clearance: float = SOLID_CLEARANCE_M) -> np.ndarray:
+    """World points filling a single-shape fit (box, cylinder or disc, sphere) grown by
+    `clearance`, on a grid; empty for compounds and meshes."""
+    shape = spec.get("shape")
+    if shape not in ("box", "cylinder", "sphere") or "parts" in spec:
+        return np.zeros((0, 3))
+    s = [v + clearance for v in spec["size_m"]]
+    half = {"box": s[:3], "cylinder": [s[0], s[0], s[1]], "sphere": [s[0]] * 3}[shape]
+    axes = [np.arange(-h + step / 2, h, step) if h > step / 2 else np.array([0.0]) for h in half]
+    L = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    if shape == "cylinder":
+        L = L[np.hypot(L[:, 0], L[:, 1]) <= s[0]]
+    elif shape == "sphere":
+        L = L[np.linalg.norm(L, axis=1) <= s[0]]
+    w, x, y, z = spec.get("quat_wxyz", [1.0, 0.0, 0.0, 0.0])
+    Rm = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return L @ Rm.T + np.array(spec["position_m"])
+
+
 def bowl_parts(c: np.ndarray, radius: float, height: float, z_bottom: float) -> tuple[dict, float]:
     """A round hollow object as a compound: a floor disc and 16 wall boxes on a circle, origin at
     the centre of its underside (as the shipped bowls are written)."""
@@ -369,6 +413,80 @@ def bowl_parts(c: np.ndarray, radius: float, height: float, z_bottom: float) -> 
             "_bowl": {"radius_m": radius, "height_m": height}}
     volume = math.pi * rc ** 2 * FLOOR_M + 16 * (2 * half_w) * WALL_M * height
     return spec, volume
+
+
+def _free_space_fit(o: Any, plane: Any, bottom: float, centre2: np.ndarray, fs: "rparts.FreeSpace",
+                    foreign: Optional[np.ndarray], evidence: dict) -> Optional[tuple[str, dict, float]]:
+    """For an object the footprint makes a box or a hull: (shape, spec, volume) of a better fit
+    that the frames support, or None to keep the box or hull. In order: a disc standing on edge
+    (a cylinder about its horizontal normal); an open round body (a cup's walls and floor, as
+    the bowls) with what sticks out of it (a handle) decomposed into convex parts; the box or
+    hull itself cut into convex parts where the source views saw through it."""
+    P = o.points
+    base_z = plane_z(plane, *centre2) + bottom
+    disc = rparts.disc_fit(P)
+    if disc is not None:
+        evidence["disc"] = {"radius_m": r(disc["radius"], 4), "outline_residual": r(disc["residual"], 4),
+                            "outline_inliers": r(disc["outline_inliers"], 3),
+                            "normal": [r(v, 4) for v in disc["normal"]]}
+        c = disc["centre"]
+        spec = {"shape": "cylinder", "size_m": [r(disc["radius"]), r(disc["half_thickness"])],
+                "position_m": [r(c[0]), r(c[1]), r(c[2] + LIFT_M)],
+                "quat_wxyz": [r(v, 6) for v in rparts.z_to(disc["normal"])]}
+        return "disc", spec, math.pi * disc["radius"] ** 2 * 2 * disc["half_thickness"]
+    cont = rparts.container_fit(P, base_z, fs)
+    if cont is not None:
+        spec, volume = bowl_parts(cont["centre"], cont["radius"], cont["height"], base_z)
+        origin = np.array([cont["centre"][0], cont["centre"][1], base_z])
+        extra: list = []
+        cuts = 0
+        if len(cont["rest"]) >= rparts.MIN_PART_POINTS:
+            dec = rparts.decompose(cont["rest"], fs, foreign)
+            keep = [Q for Q in dec["parts"] if len(Q) >= rparts.MIN_PART_POINTS]
+            extra, v2 = rparts.part_specs(keep, origin)
+            volume += v2
+            cuts = dec["cuts"]
+        spec["parts"] += extra
+        evidence["container"] = {"radius_m": r(cont["radius"], 4), "height_m": r(cont["height"], 4),
+                                 "wall_points": r(cont["inliers"], 3),
+                                 "middle_seen_empty": r(cont["middle_seen_empty"], 3),
+                                 "attached_points": int(len(cont["rest"])), "attached_parts": len(extra),
+                                 "cuts": cuts}
+        return "container", spec, volume
+    # The box or hull as fitted: does it hold space a view saw through?
+    S = rp.voxel_downsample(P, 0.003)[0] if len(P) > 3000 else P
+    Q = rparts.grounded(S, fs, base_z)
+    h = rparts.hull_of(Q)
+    if h is None:
+        return None
+    E, cell = rparts.not_ours(h, fs, foreign)
+    seen = float(len(E) * cell)
+    evidence["hull_seen_empty_cm3"] = r(seen * 1e6, 2)
+    if seen < 4 * rparts.EMPTY_TOL_M3 and seen < 0.03 * h.volume:
+        return None
+    if h.volume > rparts.MAX_DECOMPOSE_M3:
+        evidence["not_decomposed"] = (f"hull of {h.volume * 1e3:.1f} l holds {seen * 1e6:.0f} cm^3 seen empty, but objects "
+                                      f"over {rparts.MAX_DECOMPOSE_M3 * 1e3:.0f} l (furniture) are not cut into parts")
+        return None
+    dec = rparts.decompose(Q, fs, foreign)
+    keep = [X for X in dec["parts"] if len(X) >= rparts.MIN_PART_POINTS]
+    origin = np.array([centre2[0], centre2[1], base_z])
+    parts, volume = rparts.part_specs(keep, origin)
+    spec = {"position_m": [r(origin[0]), r(origin[1]), r(origin[2] + LIFT_M)], "parts": parts}
+    # Its cavity: the box spanning the space seen empty inside the first hull (between the
+    # parts: a rack's slots, the room under a peg), from the lowest such point to the top.
+    E = dec["empty"]
+    if len(E) >= 8:
+        lo = np.quantile(E, 0.02, axis=0) - origin
+        hi = np.quantile(E, 0.98, axis=0) - origin
+        hi[2] = float(h.points[h.vertices][:, 2].max() - origin[2])
+        spec["cavity_min_m"] = [r(v) for v in lo]
+        spec["cavity_max_m"] = [r(v) for v in hi]
+    evidence["decomposition"] = {"parts": len(parts), "cuts": dec["cuts"],
+                                 "residual_seen_empty_cm3": r(dec["residual_m3"] * 1e6, 2),
+                                 "boxes": sum(1 for p in parts if p["shape"] == "box"),
+                                 "meshes": sum(1 for p in parts if p["shape"] == "mesh")}
+    return "parts", spec, volume
 
 
 def hull_mesh(P: np.ndarray, plane: Any, bottom: float, centre2: np.ndarray) -> tuple[dict, float]:
@@ -612,8 +730,8 @@ def check_rules(task: dict, objects: list) -> None:
             o = next(o for o in objects if o["name"] == c)
             if "cavity_min_m" not in o:
                 raise FramesError(f"task rule {i + 1} ({rule.get('kind')}) needs container '{c}' to be hollow, but the "
-                                  f"reconstruction made it a solid {o['_kind']} (only round bowls get a cavity without "
-                                  "the optional model)")
+                                  f"reconstruction made it a solid {o['_kind']} (only round bowls, cups and objects cut "
+                                  "into parts around space the frames saw empty get a cavity)")
         if rule.get("kind") == "joint":
             raise FramesError(f"task rule {i + 1} (joint) needs an articulated fixture; reconstructed fixtures are static "
                               "objects (doors and drawers from the optional model: not yet)")
@@ -679,17 +797,53 @@ def cmd_fit(a: argparse.Namespace) -> None:
     order = sorted(range(len(clusters)), key=lambda i: (clusters[i].support not in (None, "plane"), i))
     tops: dict = {}
     fitted: dict = {}
+    # The space the source views saw through (robot pixels unknown): it checks hulls and boxes.
+    free = rparts.FreeSpace(views)
+    sparse = [rp.voxel_downsample(c.points, 0.004)[0] if len(c.points) > 1 else c.points for c in clusters]
     for i in order:
         o = clusters[i]
-        spec = fit_object(o, plane, tops, force=(choices.get(f"o{i + 1}") or {}).get("primitive"))
+        others_pts = [sparse[j] for j in range(len(clusters)) if j != i]
+        foreign = np.concatenate(others_pts) if others_pts else None
+        spec = fit_object(o, plane, tops, force=(choices.get(f"o{i + 1}") or {}).get("primitive"), fs=free,
+                          foreign=foreign)
+        tops[o.id] = spec["_top"]
+        fitted[i] = spec
+    # An object cut into parts must not hold another object's fitted solid either (a plate
+    # standing in its holder hides the holder's slot and its own lower rim from the cameras):
+    # where another object's primitive reaches into the points' extent, fit it again with that
+    # solid's volume counted as not its own.
+    solids = {i: solid_samples(fitted[i]) for i in fitted}
+    for i in order:
+        if fitted[i]["_fit"]["chosen"] not in ("parts", "container"):
+            continue
+        lo, hi = clusters[i].points.min(0) - 0.01, clusters[i].points.max(0) + 0.01
+        extra = [S[((S >= lo) & (S <= hi)).all(1)] for j, S in solids.items() if j != i and len(S)]
+        extra = [S for S in extra if len(S)]
+        if not extra:
+            continue
+        others_pts = [sparse[j] for j in range(len(clusters)) if j != i] + extra
+        o = clusters[i]
+        # What rests on it and is fitted as a solid: the unseen space under it is this
+        # object's (a holder's hidden chocks under the plate standing in it).
+        held = [j for j in range(len(clusters)) if j != i and clusters[j].support == o.id and len(solids.get(j, []))]
+        base_z = plane_z(plane, *o.points[:, :2].mean(0)) + max(0.0, float(o.bottom))
+        under = [rparts.support_columns(solid_samples(fitted[j], clearance=0.0), free, base_z, lo, hi) for j in held]
+        under = [U for U in under if len(U)]
+        if under:
+            o = dataclasses.replace(o, points=np.concatenate([o.points] + under))
+        spec = fit_object(o, plane, tops, fs=free, foreign=np.concatenate(others_pts))
+        spec["_fit"]["others_solids_counted"] = True
+        if under:
+            spec["_fit"]["support_columns_under"] = [clusters[j].id for j in held]
         tops[o.id] = spec["_top"]
         fitted[i] = spec
     objects = []
     used_names: dict = {}
     for i, o in enumerate(clusters):
         spec = fitted[i]
-        kind = {"box": "box", "cylinder": "cylinder", "sphere": "ball", "mesh": "object"}.get(
-            spec.get("shape", ""), "bowl")
+        chosen = spec["_fit"]["chosen"]
+        kind = {"box": "box", "cylinder": "cylinder", "sphere": "ball", "mesh": "object", "disc": "disc",
+                "container": "cup", "parts": "object"}.get(chosen, "bowl")
         base = f"{o.color_name}_{kind}".replace(" ", "_")
         used_names[base] = used_names.get(base, 0) + 1
         name = base if used_names[base] == 1 else f"{base}_{used_names[base]}"
@@ -702,8 +856,9 @@ def cmd_fit(a: argparse.Namespace) -> None:
             obj["quat_wxyz"] = spec["quat_wxyz"]
         if "parts" in spec:
             obj["parts"] = spec["parts"]
-            obj["cavity_min_m"] = spec["cavity_min_m"]
-            obj["cavity_max_m"] = spec["cavity_max_m"]
+            if "cavity_min_m" in spec:
+                obj["cavity_min_m"] = spec["cavity_min_m"]
+                obj["cavity_max_m"] = spec["cavity_max_m"]
         ext = spec["_fit"]["rect_m"]
         if spec["_top"] - spec["_fit"]["bottom_m"] > FIXTURE_HEIGHT_M or max(ext) > FIXTURE_SIDE_M:
             obj["free"] = False
@@ -714,7 +869,8 @@ def cmd_fit(a: argparse.Namespace) -> None:
         obj["mass_kg"] = spec["mass_kg"]
         obj["rgba"] = colour_of(o, plane)
         obj["_fit"] = spec["_fit"]
-        obj["_kind"] = "bowl" if "parts" in spec else spec["shape"]
+        obj["_kind"] = {"container": "cup", "parts": "compound", "disc": "disc"}.get(
+            chosen, "bowl" if "parts" in spec else spec["shape"])
         if "_mesh" in spec:
             obj["_mesh"] = spec["_mesh"]
         if "_bowl" in spec:
@@ -831,6 +987,11 @@ def write_scene(stage: Path, model: dict) -> None:
             (stage / "meshes").mkdir(exist_ok=True)
             (stage / "meshes" / f"{o['name']}.obj").write_text(obj_text(o["_mesh"]))
             o["mesh"] = f"meshes/{o['name']}.obj"
+        for k, p in enumerate(o.get("parts", [])):
+            if "_mesh" in p:
+                (stage / "meshes").mkdir(exist_ok=True)
+                (stage / "meshes" / f"{o['name']}_part{k}.obj").write_text(obj_text(p["_mesh"]))
+                p["mesh"] = f"meshes/{o['name']}_part{k}.obj"
     tmp = stage / ".scene.toml.tmp"
     tmp.write_text(scene_toml(model))
     os.replace(tmp, stage / "scene.toml")
@@ -993,11 +1154,15 @@ def correct(o: dict, views: list, plane: Any) -> dict:
     tops = np.array([v["_top"] for v in use])
     dtop = float(np.average(tops[:, 0] - tops[:, 1], weights=wts))
     out: dict = {}
-    if np.linalg.norm(dxy) > 0.0015:
+    kind = o["_kind"]
+    # A compound cut around seen-empty space, a cup with a handle or a disc on edge is placed by
+    # its fit against other objects' solids: a centroid shift of its visible pixels would push
+    # it into them, so only its colour is corrected.
+    fitted_in_place = kind in ("compound", "cup", "disc")
+    if np.linalg.norm(dxy) > 0.0015 and not fitted_in_place:
         o["position_m"][0] = r(o["position_m"][0] + dxy[0])
         o["position_m"][1] = r(o["position_m"][1] + dxy[1])
         out["moved_xy_m"] = [r(dxy[0]), r(dxy[1])]
-    kind = o["_kind"]
     s = float(np.clip(scale, 0.85, 1.15))
     if kind in ("box", "cylinder") and abs(s - 1) > 0.03:
         # The apparent area grows with the horizontal size and (for side views) with the height;
