@@ -75,13 +75,20 @@ pub struct ReconstructArgs {
 
 const MODEL_SYSTEM: &str = "You label the objects of a table-top scene that was reconstructed from camera \
 frames for a robot simulator. You receive the camera images and a JSON list of the objects the reconstruction \
-fitted, each with an id, a provisional name, the primitive it was fitted as, its size, position (metres, robot \
-base frame: x forward, y left, z up) and colour. For each listed object, say what it is and which primitive \
-represents it best for grasping and physics: box, cylinder (upright), sphere, bowl (an open round container) \
-or mesh (the convex hull of its points, for anything else). Use only the ids you were given: never add an \
-object, never merge or split objects. Answer with strict JSON only, no prose and no code fence: \
-{\"objects\": [{\"id\": \"o1\", \"name\": \"lower_case_name\", \"primitive\": \"box\"}]}. Names are short \
-lower-case identifiers (letters, digits, underscores), one per object, all different.";
+fitted, each with an id, a provisional name, the shape it was fitted as, its size, position (metres, robot \
+base frame: x forward, y left, z up) and colour. For each listed object, say what it is, and optionally which \
+shape represents it best for grasping and physics and what it is made of. Shapes you may impose (the object \
+is fitted again as that shape, whatever the frames show): box, cylinder (upright), sphere, bowl (an open round \
+container) or mesh (one convex hull of its points, which closes every hole and hollow). Shapes only the \
+frames can give, which you may name to keep a fit that has them: disc (a flat round object standing on its \
+edge), container (an open round body with its floor, walls and whatever sticks out, such as a mug's handle) \
+and parts (pieces cut wherever a camera saw through the object, such as a rack's slots or a hook's gap). \
+Leave the shape out to keep the fit. A material, from the list given with the objects, sets the object's mass \
+and friction. Use only the ids you were given: never add an object, never \
+merge or split objects. Answer with strict JSON only, no prose and no code fence: {\"objects\": [{\"id\": \
+\"o1\", \"name\": \"lower_case_name\", \"primitive\": \"box\", \"material\": \"wood\"}]}, where \
+primitive and material may be left out. Names are short lower-case identifiers (letters, digits, \
+underscores), one per object, all different.";
 
 /// The model's answer to the labelling request: asks the endpoint with the fitted objects and the
 /// source images, and writes {text, model, source, provider, usage} to `to` for the fit step,
@@ -96,9 +103,12 @@ fn ask_model(
 ) -> anyhow::Result<()> {
     use agent_host::llm::{Client, Message, Part, Role};
     let objects = serde_json::to_string_pretty(&fitted["for_model"])?;
+    let materials: Vec<&str> =
+        fitted["materials"].as_array().into_iter().flatten().filter_map(serde_json::Value::as_str).collect();
     let mut parts = vec![Part::Text(format!(
-        "The fitted objects (ids o1..o{}):\n{objects}\n\nThe source images follow, one per camera.",
-        fitted["for_model"].as_array().map(|a| a.len()).unwrap_or(0)
+        "The fitted objects (ids o1..o{}):\n{objects}\n\nMaterials: {}.\n\nThe source images follow, one per camera.",
+        fitted["for_model"].as_array().map(|a| a.len()).unwrap_or(0),
+        materials.join(", ")
     ))];
     let mut pngs: Vec<PathBuf> = std::fs::read_dir(frames.join("rgb"))
         .with_context(|| format!("{}", frames.join("rgb").display()))?
@@ -112,7 +122,10 @@ fn ask_model(
     }
     let (endpoint, _scripted, source) = agent_host::session::endpoint(llm, provider, "reconstruct", None, work)?;
     let client = Client::new(endpoint.clone())?;
-    eprintln!("r2g reconstruct: asking {} ({}, {source}) for names and primitives", endpoint.model, endpoint.base_url);
+    eprintln!(
+        "r2g reconstruct: asking {} ({}, {source}) for names, shapes and materials",
+        endpoint.model, endpoint.base_url
+    );
     let c = client
         .complete(MODEL_SYSTEM, &[Message { role: Role::User, parts }])
         .with_context(|| format!("the call to the model endpoint {} failed", endpoint.base_url))?;

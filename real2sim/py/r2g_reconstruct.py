@@ -364,7 +364,8 @@ def fit_object(o: Any, plane: Any, others: dict, force: Optional[str] = None,
         spec, volume = bowl_parts(circ_c, circ_r, height, cz_base + bottom)
     else:
         spec, volume = hull_mesh(P, plane, bottom, centre2)
-    spec["mass_kg"] = r(min(2.0, max(0.02, DENSITY_KG_M3 * volume)), 4)
+    spec["mass_kg"] = r(min(MASS_RANGE_KG[1], max(MASS_RANGE_KG[0], DENSITY_KG_M3 * volume)), 4)
+    evidence["volume_m3"] = float(f"{volume:.4g}")
     spec["_fit"] = evidence
     spec["_top"] = top
     return spec
@@ -602,13 +603,38 @@ def _span(o: dict, plane: Any) -> tuple[float, float]:
 
 
 PRIMITIVES = ("box", "cylinder", "sphere", "bowl", "mesh")
+"""Shapes the model may impose: the fit is redone with that primitive, whatever the frames say."""
+FITTED_SHAPES = ("disc", "container", "parts")
+"""Shapes only the frames can give (they need the free-space evidence): named in an answer, they
+mean "keep the fit if it is this"; where the fit came out otherwise, the request is reported as
+a warning and the fit kept."""
+MATERIALS = {
+    # name: (density of the fitted solid in kg/m^3, sliding friction), rounded handbook values;
+    # the fitted solid of a cup or bowl is its walls, of anything else its whole volume.
+    "wood": (600.0, 0.5),
+    "ceramic": (2300.0, 0.5),
+    "glass": (2500.0, 0.4),
+    "metal": (7800.0, 0.4),
+    "plastic": (1000.0, 0.4),
+    "rubber": (1100.0, 1.0),
+    "cardboard": (250.0, 0.6),
+    "foam": (60.0, 0.8),
+    "fabric": (300.0, 0.8),
+    "fruit": (950.0, 0.6),
+}
+"""The model's optional `material`: sets the object's mass (density x fitted volume, within
+MASS_RANGE_KG) and friction. In MuJoCo a contact takes the larger friction of its two geoms,
+and the table and fingers have 0.8 and 1.2, so a friction below those changes little."""
+MASS_RANGE_KG = (0.02, 2.0)
 NAME_CHARS = set("abcdefghijklmnopqrstuvwxyz0123456789_")
 
 
 def read_model_answer(text: str, n: int) -> dict:
-    """The model's answer -> {"o<k>": {"name": ..., "primitive": ...}}, checked strictly: a JSON
-    object {"objects": [{"id", "name"?, "primitive"?}]}, ids among o1..o<n> (the model may not
-    invent objects), each once, primitives among PRIMITIVES, names lower-case identifiers."""
+    """The model's answer -> {"o<k>": {"name"?, "primitive"? | "keep"?, "material"?}}, checked
+    strictly: a JSON object {"objects": [{"id", "name"?, "primitive"?, "material"?, "why"?}]}, ids
+    among o1..o<n> (the model may not invent objects), each once, primitives among PRIMITIVES (imposed)
+    or FITTED_SHAPES (kept only if the fit agrees), materials among MATERIALS, names lower-case
+    identifiers."""
     body = text.strip()
     if body.startswith("```"):
         body = body.split("\n", 1)[1] if "\n" in body else ""
@@ -625,7 +651,7 @@ def read_model_answer(text: str, n: int) -> dict:
     for i, e in enumerate(doc["objects"]):
         if not isinstance(e, dict) or not isinstance(e.get("id"), str):
             raise FramesError(f"the model's answer: objects[{i}] is not an object with an \"id\" string")
-        bad = set(e) - {"id", "name", "primitive", "why"}
+        bad = set(e) - {"id", "name", "primitive", "material", "why"}
         if bad:
             raise FramesError(f"the model's answer: objects[{i}] has unknown key(s) {sorted(bad)}")
         oid = e["id"]
@@ -637,10 +663,16 @@ def read_model_answer(text: str, n: int) -> dict:
         c: dict = {}
         prim = e.get("primitive")
         if prim is not None:
-            if prim not in PRIMITIVES:
+            if prim not in PRIMITIVES + FITTED_SHAPES:
                 raise FramesError(f"the model's answer: object {oid}: primitive {prim!r} is not one of "
-                                  f"{', '.join(PRIMITIVES)}")
-            c["primitive"] = prim
+                                  f"{', '.join(PRIMITIVES + FITTED_SHAPES)}")
+            c["primitive" if prim in PRIMITIVES else "keep"] = prim
+        mat = e.get("material")
+        if mat is not None:
+            if mat not in MATERIALS:
+                raise FramesError(f"the model's answer: object {oid}: material {mat!r} is not one of "
+                                  f"{', '.join(MATERIALS)}")
+            c["material"] = mat
         nm = e.get("name")
         if nm is not None:
             if (not isinstance(nm, str) or not nm or len(nm) > 40 or not set(nm) <= NAME_CHARS
@@ -654,6 +686,25 @@ def read_model_answer(text: str, n: int) -> dict:
             c["name"] = nm
         out[oid] = c
     return out
+
+
+def apply_model_physics(choices: dict, objects: list, warn: list) -> None:
+    """The model's materials (mass and friction from MATERIALS and the fitted volume) and the
+    fitted shapes it asked to keep, checked against what the frames gave (a mismatch warns)."""
+    for k, o in enumerate(objects):
+        c = choices.get(f"o{k + 1}") or {}
+        if c.get("keep") and c["keep"] != o["_fit"]["chosen"]:
+            msg = (f"o{k + 1} ({o['name']}): the model asked to keep a {c['keep']} fit, but the frames gave a "
+                   f"{o['_fit']['chosen']}; kept the {o['_fit']['chosen']}")
+            o["_fit"]["model_asked"] = c["keep"]
+            warn.append(msg)
+        if c.get("material"):
+            density, friction = MATERIALS[c["material"]]
+            vol = float(o["_fit"]["volume_m3"])
+            o["mass_kg"] = r(min(MASS_RANGE_KG[1], max(MASS_RANGE_KG[0], density * vol)), 4)
+            o["friction"] = friction
+            o["_fit"]["material"] = {"name": c["material"], "density_kg_m3": density, "friction": friction,
+                                     "chosen_by": "model"}
 
 
 def apply_model_names(choices: dict, objects: list, names: dict) -> list:
@@ -878,6 +929,7 @@ def cmd_fit(a: argparse.Namespace) -> None:
         obj["_cluster"] = int(o.id)
         objects.append(obj)
     set_stage("naming the objects and checking the task")
+    apply_model_physics(choices, objects, warn)
     llm_named = apply_model_names(choices, objects, names)
     apply_names(names, objects, scene, clusters, a.task or "--task")
     seen: dict = {}
@@ -976,6 +1028,7 @@ def cmd_fit(a: argparse.Namespace) -> None:
                                      "round_outline_residual": o["_fit"]["circle_residual"],
                                      "hollow_top": o["_fit"]["hollow"], "static": o.get("free") is False}
                                     for k, o in enumerate(objects)],
+                      "materials": list(MATERIALS),
                       "task_empty": not task.get("success"), "warnings": warn,
                       "demonstration": demo is not None,
                       "demonstration_scene": str(demo_scene) if demo_scene else None}))

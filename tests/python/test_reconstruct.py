@@ -11,6 +11,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import tomllib
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
@@ -210,9 +211,31 @@ def test_model_names_and_primitives_applied(frames, tmp_path):
     assert (tmp_path / "gym" / "meshes" / "thing_one.obj").is_file()
 
 
+def test_model_materials_and_kept_shapes(frames, tmp_path):
+    """Mechanics only (scripted answer): a material sets the object's mass (its density times the
+    fitted volume) and friction in scene.toml; a fitted shape the model asks to keep that the
+    frames did not give is a warning, and the fit stands."""
+    ans = {"objects": [{"id": "o1", "name": "thing_one", "material": "metal"},
+                       {"id": "o2", "name": "thing_two", "primitive": "parts", "material": "foam"}]}
+    p = model_run(tmp_path, frames, ans)
+    assert p.returncode == 0, p.stderr
+    rep = json.loads((tmp_path / "gym" / "reconstruction.json").read_text())
+    scene = tomllib.loads((tmp_path / "gym" / "scene.toml").read_text())
+    by = {o["name"]: o for o in scene["objects"]}
+    fits = {o["name"]: o["fit"] for o in rep["objects"]}
+    for name, (density, friction) in (("thing_one", (7800.0, 0.4)), ("thing_two", (60.0, 0.8))):
+        fit = fits[name]
+        assert fit["material"]["chosen_by"] == "model" and by[name]["friction"] == friction
+        want = min(2.0, max(0.02, density * fit["volume_m3"]))
+        assert by[name]["mass_kg"] == pytest.approx(want, rel=1e-3), (name, by[name]["mass_kg"], want)
+    assert fits["thing_two"]["chosen"] != "parts" and fits["thing_two"]["model_asked"] == "parts"
+    assert any("asked to keep a parts fit" in w for w in rep["warnings"]), rep["warnings"]
+
+
 @pytest.mark.parametrize("answer,needle", [
     ({"objects": [{"id": "o7", "name": "ghost", "primitive": "box"}]}, "names object id 'o7', which the reconstruction"),
     ({"objects": [{"id": "o1", "primitive": "cone"}]}, "primitive 'cone' is not one of box, cylinder, sphere, bowl"),
+    ({"objects": [{"id": "o1", "material": "unobtainium"}]}, "material 'unobtainium' is not one of wood, ceramic"),
     ("The block is red.", "the model's answer is not JSON"),
     ({"objects": [{"id": "o1", "name": "Big Block"}]}, "name 'Big Block' is not a lower-case identifier"),
 ])
