@@ -209,10 +209,8 @@ def sweep() -> list[str]:
             if s is None or s[1] == int(facts.get("leader_start", -1)):
                 # The leader is gone or still the job's own (not a reused pid): its session.
                 _kill_session(leader, int(facts.get("leader_start", 0)), tag)
-        part = facts.get("part")
-        if isinstance(part, str) and f".part-{tag}" in os.path.basename(part):
-            # The unfinished output folder of the dead try (on the shared mount, if any).
-            shutil.rmtree(part, ignore_errors=True)
+        # (Its output folder, if any, is not touched here: a retry elsewhere may already be
+        # writing it. The retry removes what the dead try left before it starts; see run_job.)
         _remove_files(mine, tag)
         swept.append(tag)
     return swept
@@ -226,35 +224,28 @@ def _die_with_worker() -> Callable[[], None]:
     return lambda: libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
 
 
-def _part(out: str, tag: str) -> str:
-    """Where a job whose output folder is `out` writes until it ends: a hidden sibling named by
-    the job's tag (`.episode-003.part-r2gj...`), renamed to `out` when the job has ended."""
-    parent, name = os.path.split(out.rstrip("/"))
-    return os.path.join(parent, f".{name}.part-{tag}")
-
-
-def _finish_part(part: str, out: str) -> None:
-    """Moves a finished job's folder `part` to `out` (an earlier attempt's folder, if one got
-    there, is replaced), its own path in its top-level text records rewritten to `out`."""
-    if not os.path.isdir(part):
+def discard(out: str, why: str) -> None:
+    """Removes the output folder `out` of a try that did not end well (or that an earlier,
+    dead try left): first renamed aside in one step (`.NAME.removed-<why>`), so no reader ever
+    sees a folder under its own name half-removed, then deleted. Nothing at `out`: nothing."""
+    out = out.rstrip("/")
+    parent, name = os.path.split(out)
+    aside = os.path.join(parent, f".{name}.removed-{why}")
+    try:
+        os.rename(out, aside)
+    except FileNotFoundError:
         return
-    olds, new = {part.encode(), os.path.realpath(part).encode()}, out.rstrip("/").encode()
-    for entry in os.scandir(part):
-        if entry.is_file(follow_symlinks=False) and entry.stat().st_size < 8 * 2**20:
-            body = Path(entry.path).read_bytes()
-            if any(old in body for old in olds):
-                for old in olds:
-                    body = body.replace(old, new)
-                tmp = f"{entry.path}.fix-{os.getpid()}"
-                Path(tmp).write_bytes(body)
-                os.replace(tmp, entry.path)
-    if os.path.lexists(out):
-        stale = f"{part}.stale"
-        os.rename(out, stale)
-        os.rename(part, out)
-        shutil.rmtree(stale, ignore_errors=True)
+    if os.path.isdir(aside) and not os.path.islink(aside):
+        shutil.rmtree(aside, ignore_errors=True)
     else:
-        os.rename(part, out)
+        os.unlink(aside)
+
+
+def ended(result: dict[str, Any]) -> bool:
+    """Whether a try ended by itself with its result: it exited (not killed by a signal) after
+    printing its JSON line, which `r2g episode` prints once its folder is whole (its exit
+    status says whether the task was achieved, 0 or 1, not whether the episode ran)."""
+    return isinstance(result.get("rc"), int) and result["rc"] >= 0 and isinstance(result.get("value"), dict)
 
 
 def _node() -> dict[str, Any]:
@@ -272,9 +263,13 @@ def _node() -> dict[str, Any]:
 def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
     """Runs one job here: `r2g <job["args"]>`, isolated as the module docstring says, in the
     driver's working directory when this node has it. A job that names its output folder
-    (`job["out"]`, one of its arguments) writes to a hidden sibling of it, renamed to it when
-    the job ends: a folder of that name is always whole, and a try cut short leaves only the
-    sibling, removed by the node's sweep or the driver. Returns its result: the exit status,
+    (`job["out"]`, one of its arguments: an episode's, whose `result.json` is written when the
+    episode has ended) writes it in place, under its own name, and owns it alone: whatever is
+    there when the try starts (left by an earlier try that died with its worker or node, or by
+    an earlier run into the same folder) is removed first, and a try that did not end with its
+    result (`ended`) removes its folder (`discard`). So a folder of that name is either being written by the one
+    live try, or whole, or left by a try cut short with its node (no `result.json`: the job's
+    retry, or the driver when no try is left, removes it). Returns its result: the exit status,
     its last JSON line, the tail of its stderr, where it ran."""
     sweep()
     tag = f"r2gj{uuid.uuid4().hex[:10]}"
@@ -282,7 +277,6 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
     d.mkdir(mode=0o700)
     me = _stat(os.getpid())
     out = job.get("out")
-    part = _part(out, tag) if out else None
     facts: dict[str, Any] = {
         "job": job["id"],
         "boot_id": _boot_id(),
@@ -291,7 +285,7 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
         "leader": 0,
         "leader_start": 0,
         "prefix": f"{tag}_",
-        "part": part,
+        "out": out,
     }
     # The facts first: from here on a sweep can tell whether this job's worker lives.
     _write_facts(d, facts)
@@ -305,10 +299,12 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
     cwd = job.get("cwd")
     stderr_path = d / "stderr.txt"
     t0 = time.monotonic()
+    if out:
+        # What an earlier try left (it died with its worker, and the job's processes with it).
+        discard(out, tag)
     with open(stderr_path, "wb") as err:
-        args = [part if a == out and part else a for a in job["args"]]
         proc = subprocess.Popen(
-            [r2g, *args],
+            [r2g, *job["args"]],
             stdout=subprocess.PIPE,
             stderr=err,
             stdin=subprocess.DEVNULL,
@@ -326,11 +322,6 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
         finally:
             # Whatever is left of the session (an instance's processes) goes with the job.
             _kill_session(proc.pid, int(facts["leader_start"]), tag)
-    if part and out:
-        real = os.path.realpath(part)
-        _finish_part(part, out)
-        for p in {part, real}:
-            stdout = stdout.replace(p.encode(), out.rstrip("/").encode())
     result = {
         "id": job["id"],
         "rc": proc.returncode,
@@ -347,6 +338,10 @@ def run_job(job: dict[str, Any], r2g: str) -> dict[str, Any]:
                 break
             except ValueError:
                 continue
+    if out and not ended(result):
+        # Killed (a signal, the OOM killer) or failed before its result: not an episode
+        # anyone should count.
+        discard(out, tag)
     _remove_files(d, tag)
     return result
 
@@ -483,6 +478,27 @@ def _ray(
         ray.shutdown()
 
 
+def _parse_job(line: str) -> tuple[str, dict[str, Any]]:
+    """One line of `serve`'s stdin: ("job", the job), or ("bad", a failed result saying what
+    is wrong with the line, under its id when it has one)."""
+    try:
+        job = json.loads(line)
+    except ValueError as e:
+        return "bad", {"id": None, "rc": None, "value": None, "error": f"a job line that is not JSON ({e}): {line[:200]!r}"}
+    if not isinstance(job, dict):
+        return "bad", {"id": None, "rc": None, "value": None, "error": f"a job line that is not an object: {line[:200]!r}"}
+    if not isinstance(job.get("id"), int) or not isinstance(job.get("args"), list) or not all(
+        isinstance(a, str) for a in job["args"]
+    ):
+        return "bad", {
+            "id": job.get("id") if isinstance(job.get("id"), int) else None,
+            "rc": None,
+            "value": None,
+            "error": f'a job needs "id" (an integer) and "args" (a list of strings): {line[:200]!r}',
+        }
+    return "job", job
+
+
 def _serve(r2g: str, address: str, retries: int) -> Iterator[dict[str, Any]]:
     """One driver for a stream of jobs: each JSON line on stdin is a job, submitted as a Ray
     task at once (as many in flight as the caller sends); results come back as they finish.
@@ -490,13 +506,17 @@ def _serve(r2g: str, address: str, retries: int) -> Iterator[dict[str, Any]]:
     import queue as q
 
     ray = _connect(address)
-    incoming: q.Queue[dict[str, Any] | None] = q.Queue()
+    # ("job", job), ("bad", its failed result), or None at the end of stdin.
+    incoming: q.Queue[tuple[str, dict[str, Any]] | None] = q.Queue()
 
     def read() -> None:
-        for line in sys.stdin:
-            if line.strip():
-                incoming.put(json.loads(line))
-        incoming.put(None)
+        try:
+            for line in sys.stdin:
+                if line.strip():
+                    incoming.put(_parse_job(line))
+        finally:
+            # However reading ends, the end comes: the loop below must not wait for ever.
+            incoming.put(None)
 
     threading.Thread(target=read, daemon=True).start()
     try:
@@ -507,11 +527,15 @@ def _serve(r2g: str, address: str, retries: int) -> Iterator[dict[str, Any]]:
             try:
                 # Block for the next job only when nothing runs.
                 while True:
-                    job = incoming.get(timeout=None if not refs else 0.0) if open_ else None
-                    if job is None:
+                    item = incoming.get(timeout=None if not refs else 0.0) if open_ else None
+                    if item is None:
                         open_ = False
                         break
-                    refs[task.remote(job, r2g)] = job
+                    kind, job = item
+                    if kind == "bad":
+                        yield job
+                    else:
+                        refs[task.remote(job, r2g)] = job
             except q.Empty:
                 pass
             if not refs:

@@ -58,6 +58,32 @@ def _pids() -> list[int]:
     return [int(e) for e in os.listdir("/proc") if e.isdigit()]
 
 
+def _start(pid: int) -> int | None:
+    s = _stat(pid)
+    return int(s[19]) if s and s[0] not in ("Z", "X") else None
+
+
+def _kill(pid: int, start: int | None) -> bool:
+    """SIGKILL to `pid` only while it is still the process that started at `start` (clock
+    ticks since boot, read when it was chosen): held by a pidfd, checked, then signalled
+    through the pidfd, so a pid given out again in between is never signalled."""
+    if start is None:
+        return False
+    try:
+        fd = os.pidfd_open(pid)
+    except OSError:
+        return False
+    try:
+        if _start(pid) != start:
+            return False
+        signal.pidfd_send_signal(fd, signal.SIGKILL)
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+
+
 class Node:
     """One "machine": a holder process (it keeps the mount namespace while Ray comes and goes)
     in network namespace `netns`, with private /dev/shm and /tmp and the shared folder."""
@@ -65,6 +91,9 @@ class Node:
     def __init__(self, name: str, netns: str, ip: str, shared: Path, log_dir: Path) -> None:
         self.name, self.netns, self.ip, self.log_dir = name, netns, ip, log_dir
         self.ray: subprocess.Popen[bytes] | None = None
+        self.ray_sid = 0
+        """The session of the node's latest `ray start` (its pid): kept after that process is
+        reaped, but only ever used together with the node's own mount namespace."""
         self.logs: list[Path] = []
         # A private mount namespace entered in the node's network namespace: tmpfs on /dev/shm
         # and /tmp, then the shared folder bound back at its own path (through an fd opened
@@ -114,6 +143,7 @@ while True:
         self.logs.append(log)
         self.ray = subprocess.Popen(self.cmd(script), env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT,
                                     start_new_session=True)
+        self.ray_sid = self.ray.pid
 
     def wait_up(self, timeout: float = 120) -> None:
         assert self.ray is not None
@@ -129,10 +159,14 @@ while True:
             raise RuntimeError(f"{self.name} advertises another address: {log.read_text(errors='replace')[-3000:]}")
 
     def ray_session(self) -> list[int]:
-        """Every process of this node's `ray start` (its session: raylet, workers and all)."""
-        if self.ray is None:
+        """Every process of this node's `ray start` (its session: raylet, workers and all).
+        A session number is a pid, which the machine may give out again once every process of
+        the session is gone (and `ray start` reaped): only processes in this node's own mount
+        namespace, which nothing but this node's processes ever enters, are counted."""
+        if not self.ray_sid or not self.mnt:
             return []
-        return [p for p in _pids() if (s := _stat(p)) and s[0] not in ("Z", "X") and int(s[3]) == self.ray.pid]
+        return [p for p in _pids() if (s := _stat(p)) and s[0] not in ("Z", "X") and int(s[3]) == self.ray_sid
+                and _ns(p, "mnt") == self.mnt]
 
     def kill_ray(self) -> list[int]:
         """The node dies: SIGKILL to every process of its Ray session, by pid."""
@@ -141,19 +175,17 @@ while True:
             pids = self.ray_session()
             if not pids:
                 break
-            for p in pids:
-                try:
-                    os.kill(p, signal.SIGKILL)
-                    killed.append(p)
-                except ProcessLookupError:
-                    pass
+            starts = {p: _start(p) for p in pids}
+            # Still this node's (in its mount namespace) when its start time is read again.
+            killed += [p for p in pids if _ns(p, "mnt") == self.mnt and _kill(p, starts[p])]
             time.sleep(0.1)
         if self.ray is not None:
             try:
                 self.ray.wait(timeout=10)
             except subprocess.TimeoutExpired:
-                self.ray.kill()
+                self.ray.kill()  # our child, not reaped yet: its pid is still its own
                 self.ray.wait(timeout=10)
+            self.ray = None
         return sorted(set(killed))
 
     def path(self, p: str) -> Path:
@@ -229,7 +261,11 @@ class Cluster:
     def ours(self) -> list[int]:
         """Every process in one of the test's namespaces (network or mount), or below one."""
         mnts = {n.mnt for n in self.nodes if n.mnt}
-        roots = {p.pid for p in self.started} | {n.holder.pid for n in self.nodes}
+        # Our children not reaped yet (poll() reaps one that has exited): a pid is ours only
+        # while it is not reaped, since the machine may give it out again after.
+        roots = {p.pid for p in self.started if p.poll() is None}
+        roots |= {n.holder.pid for n in self.nodes if n.holder.poll() is None}
+        roots |= {n.ray.pid for n in self.nodes if n.ray is not None and n.ray.poll() is None}
         parent = {p: int(s[1]) for p in _pids() if (s := _stat(p)) and s[0] not in ("Z", "X")}
         ours = {p for p in parent if _ns(p, "net") in self.net_ids or _ns(p, "mnt") in mnts or p in roots}
         for p in parent:
@@ -260,11 +296,13 @@ class Cluster:
             left = self.ours()
             if not left:
                 break
+            starts = {p: _start(p) for p in left}
+            # Still ours when its start time is read again (see `_kill`): one that changed
+            # between the two reads is left to the next pass, which looks again.
+            still = set(self.ours())
             for p in left:
-                try:
-                    os.kill(p, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
+                if p in still:
+                    _kill(p, starts[p])
             time.sleep(0.1)
         for n in self.nodes:
             try:

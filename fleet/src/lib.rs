@@ -61,8 +61,9 @@ pub fn drivers_started() -> usize {
     DRIVERS.load(Ordering::Relaxed)
 }
 
-/// Subcommands whose `--out` is a folder of the job's own (written whole or not at all, see
-/// [`run`]); other jobs (`replay`, `validate`) share or reuse theirs.
+/// Subcommands whose `--out` is a folder of the job's own (owned by one try at a time and
+/// removed unless a try ends with its result, see [`run`]); other jobs (`replay`, `validate`) share or reuse
+/// theirs.
 const OWN_OUT: &[&str] = &["episode"];
 
 /// The job's own output folder, if it has one ([`OWN_OUT`]).
@@ -74,17 +75,26 @@ fn own_out(job: &Job) -> Option<String> {
     job.args.get(i + 1).filter(|o| Path::new(o).is_absolute()).cloned()
 }
 
-/// Removes what tries cut short left of the jobs' own output folders (`.NAME.part-<tag>`
-/// beside each): called once no try of these jobs can still run here.
-fn remove_parts(jobs: &[Job]) {
-    for out in jobs.iter().filter_map(own_out) {
+/// Whether a job's result is that of a try that ended by itself with its result (not killed by
+/// a signal, its JSON line printed: `r2g episode` prints it once its folder is whole, and exits
+/// 1 for an episode that did not achieve its task): the only tries whose own folder is kept.
+fn succeeded(r: &Value) -> bool {
+    r["rc"].as_i64().is_some_and(|rc| rc >= 0) && r["value"].is_object()
+}
+
+/// Removes the own output folders of `jobs` (what their last tries, cut short with their
+/// worker or node, left): renamed aside in one step, then deleted, as the driver's `discard`
+/// does. Called only once no try of these jobs can still run.
+fn discard_outs<'a>(jobs: impl IntoIterator<Item = &'a Job>) {
+    for out in jobs.into_iter().filter_map(own_out) {
         let out = Path::new(&out);
         let (Some(parent), Some(name)) = (out.parent(), out.file_name()) else { continue };
-        let prefix = format!(".{}.part-", name.to_string_lossy());
-        for e in std::fs::read_dir(parent).into_iter().flatten().flatten() {
-            if e.file_name().to_string_lossy().starts_with(&prefix) {
-                let _ = std::fs::remove_dir_all(e.path());
-            }
+        let aside = parent.join(format!(".{}.removed-driver-{}", name.to_string_lossy(), std::process::id()));
+        if std::fs::rename(out, &aside).is_ok() {
+            let _ = match std::fs::symlink_metadata(&aside) {
+                Ok(m) if m.is_dir() => std::fs::remove_dir_all(&aside),
+                _ => std::fs::remove_file(&aside),
+            };
         }
     }
 }
@@ -109,7 +119,8 @@ fn driver_failed(backend: &Backend, status: std::process::ExitStatus, results: u
     match backend {
         Backend::Ray { address, .. } if address != "auto" && !head_answers(address) => anyhow::anyhow!(
             "the Ray head at {address} does not answer (lost): the fleet driver stopped ({status}) after \
-             {results} of {jobs} results (a job that did not finish left no output folder under its own name)"
+             {results} of {jobs} results (episodes still running on other nodes may yet finish; an episode \
+             folder without result.json is not whole)"
         ),
         _ => anyhow::anyhow!(
             "the fleet driver failed ({status}) after {results} of {jobs} results; see its message above"
@@ -158,10 +169,14 @@ fn with_node(mut r: Value) -> Value {
 /// null), "stderr_tail", "node" (see [`with_node`]), "worker", "wall_s"}`, or `{"id",
 /// "error"}` for a job that failed on every try. `work_dir` keeps the job list. The driver is
 /// `fleet/py/r2g_fleet.py` in the project venv; it imports Ray only for [`Backend::Ray`]. A job
-/// of [`OWN_OUT`] writes its `--out` folder under a hidden name and renames it when it ends, so
-/// that folder is whole or absent; what cut-short tries left is removed when the driver ends,
-/// however it ends. When the driver fails on a Ray head that no longer answers, the error
-/// names the head.
+/// of [`OWN_OUT`] writes its `--out` folder in place; a try that does not end with its result
+/// (killed, or failed before it printed its JSON line) removes it, a retry first removes what a
+/// dead try left, and when the driver has ended well (or was a local one, whose tries die with
+/// it) the folders of jobs that failed on every try are removed: after `run`, such a folder
+/// exists only for a job whose try ended with its result. After a Ray
+/// driver that failed (its head lost), tries may still run on the workers: their folders are
+/// left to them (whole once `result.json` is there). When the driver fails on a Ray head that
+/// no longer answers, the error names the head.
 pub fn run(jobs: &[Job], backend: &Backend, work_dir: &Path, mut on_result: impl FnMut(Value)) -> anyhow::Result<()> {
     let (python, driver) = driver()?;
     std::fs::create_dir_all(work_dir).with_context(|| format!("creating {}", work_dir.display()))?;
@@ -189,11 +204,15 @@ pub fn run(jobs: &[Job], backend: &Backend, work_dir: &Path, mut on_result: impl
     DRIVERS.fetch_add(1, Ordering::Relaxed);
     let out = child.stdout.take().context("driver stdout")?;
     let mut results = 0;
+    let mut done = std::collections::HashSet::new();
     for line in std::io::BufReader::new(out).lines() {
         let Ok(line) = line else { break };
         match serde_json::from_str::<Value>(&line) {
             Ok(v) => {
                 results += 1;
+                if succeeded(&v) {
+                    done.extend(v["id"].as_u64());
+                }
                 on_result(with_node(v))
             }
             Err(_) => eprintln!("{line}"),
@@ -201,11 +220,21 @@ pub fn run(jobs: &[Job], backend: &Backend, work_dir: &Path, mut on_result: impl
     }
     let status = child.wait()?;
     let _ = std::fs::remove_file(&list);
-    remove_parts(jobs);
+    if status.success() || matches!(backend, Backend::Local(_)) {
+        discard_outs(jobs.iter().filter(|j| !done.contains(&(j.id as u64))));
+    }
     if !status.success() {
         return Err(driver_failed(backend, status, results, jobs.len()));
     }
     Ok(())
+}
+
+/// The jobs of a [`Pool`] waiting for their results, and whether the driver's output has ended
+/// (then no result comes any more, for them or for a job submitted later).
+#[derive(Default)]
+struct Waiting {
+    closed: bool,
+    jobs: HashMap<usize, mpsc::Sender<Value>>,
 }
 
 /// One Ray driver for jobs submitted one by one, from any thread, over its lifetime
@@ -215,7 +244,7 @@ pub struct Pool {
     backend: Backend,
     stdin: Mutex<Option<ChildStdin>>,
     child: Mutex<Child>,
-    waiting: Arc<Mutex<HashMap<usize, mpsc::Sender<Value>>>>,
+    waiting: Arc<Mutex<Waiting>>,
     next: AtomicUsize,
     cwd: PathBuf,
 }
@@ -230,7 +259,7 @@ impl Pool {
         cmd.arg(&driver).args(["serve", "--ray", address, "--r2g"]).arg(&r2g);
         die_with_parent(&mut cmd);
         cmd.stdout(Stdio::piped()).stdin(Stdio::piped());
-        let waiting: Arc<Mutex<HashMap<usize, mpsc::Sender<Value>>>> = Arc::default();
+        let waiting: Arc<Mutex<Waiting>> = Arc::default();
         let w = waiting.clone();
         // The driver is started by the thread that reads its results, which lives as long as
         // it does: PR_SET_PDEATHSIG fires when the thread that started a child ends, and the
@@ -251,15 +280,18 @@ impl Pool {
                 match serde_json::from_str::<Value>(&line) {
                     Ok(v) => {
                         let id = v["id"].as_u64().unwrap_or(u64::MAX) as usize;
-                        if let Some(tx) = w.lock().unwrap_or_else(|e| e.into_inner()).remove(&id) {
+                        if let Some(tx) = w.lock().unwrap_or_else(|e| e.into_inner()).jobs.remove(&id) {
                             let _ = tx.send(with_node(v));
                         }
                     }
                     Err(_) => eprintln!("{line}"),
                 }
             }
-            // The driver is gone: whoever still waits hears it (their senders drop).
-            w.lock().unwrap_or_else(|e| e.into_inner()).clear();
+            // The driver is gone: whoever still waits hears it (their senders drop), and so does
+            // whoever comes later (closed, under the same lock).
+            let mut w = w.lock().unwrap_or_else(|e| e.into_inner());
+            w.closed = true;
+            w.jobs.clear();
         });
         let mut child = started_rx.recv().context("starting the fleet driver")?.context("starting the fleet driver")?;
         DRIVERS.fetch_add(1, Ordering::Relaxed);
@@ -279,7 +311,17 @@ impl Pool {
         let id = self.next.fetch_add(1, Ordering::Relaxed);
         let job = Job { id, args };
         let (tx, rx) = mpsc::channel();
-        self.waiting.lock().unwrap_or_else(|e| e.into_inner()).insert(id, tx);
+        {
+            let mut w = self.waiting.lock().unwrap_or_else(|e| e.into_inner());
+            if w.closed {
+                drop(w);
+                return Err(self.failed().context(format!(
+                    "job {id} ({}) submitted after the fleet driver's output had ended: it cannot run",
+                    job.args.first().map_or("", String::as_str)
+                )));
+            }
+            w.jobs.insert(id, tx);
+        }
         {
             let mut stdin = self.stdin.lock().unwrap_or_else(|e| e.into_inner());
             let sent = stdin
@@ -287,13 +329,16 @@ impl Pool {
                 .map(|s| writeln!(s, "{}", job_json(&job, &self.cwd)).and_then(|_| s.flush()))
                 .transpose();
             if !matches!(sent, Ok(Some(()))) {
-                self.waiting.lock().unwrap_or_else(|e| e.into_inner()).remove(&id);
+                self.waiting.lock().unwrap_or_else(|e| e.into_inner()).jobs.remove(&id);
                 return Err(self.failed());
             }
         }
-        let r = rx.recv().map_err(|_| self.failed());
-        remove_parts(std::slice::from_ref(&job));
-        r
+        let r = rx.recv().map_err(|_| self.failed())?;
+        if !succeeded(&r) {
+            // The job's last try is over: what it left of its own folder goes.
+            discard_outs([&job]);
+        }
+        Ok(r)
     }
 
     /// Why the driver is gone.

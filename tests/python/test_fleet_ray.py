@@ -2,7 +2,9 @@
 group it created, never `ray stop`), on loopback only: eight scripted episodes (recorded
 conversations, so synthetic model answers), one Ray worker SIGKILLed mid-episode, the episode
 retried (a second attempt seen starting), and nothing of the killed job left (processes,
-/dev/shm files, its iceoryx2 root under /tmp) within 15 s."""
+/dev/shm files, its iceoryx2 root under /tmp) within 15 s; every episode folder whole where it
+stays. Then the same head serves `r2g_fleet.py serve` (one driver, jobs as lines): a line that is
+not a job is a failed result of its own, not the end of the driver."""
 from __future__ import annotations
 
 import json
@@ -129,6 +131,21 @@ def test_a_ray_batch_survives_a_killed_worker_and_leaves_nothing_behind(ray_head
         if batch.poll() is None:
             batch.kill()
             batch.communicate()
+    # One driver for jobs sent one by one (what `r2g augment --ray` uses): a line that is not a
+    # job comes back as a failed result naming it, the jobs around it run, and the end of input
+    # still ends the driver.
+    serve = subprocess.run(
+        [str(ROOT / ".venv" / "bin" / "python"), str(ROOT / "fleet" / "py" / "r2g_fleet.py"), "serve", "--ray", address,
+         "--r2g", str(R2G)],
+        input="not a job\n" + json.dumps({"id": 7, "args": ["replay", "pick_block_plate", "--out",
+                                                            str(tmp_path / "replays")]}) + "\n",
+        capture_output=True, text=True, timeout=240, env=dict(os.environ, R2G_FLEET_DIR=str(jobs), **LOOPBACK),
+    )
+    assert serve.returncode == 0, serve.stderr[-3000:]
+    results = {r["id"]: r for r in map(json.loads, serve.stdout.splitlines())}
+    assert sorted(results, key=str) == [7, None], results
+    assert "not JSON" in results[None]["error"] and "not a job" in results[None]["error"], results[None]
+    assert isinstance(results[7]["value"], dict) and results[7]["node"]["ip"] == "127.0.0.1", results[7]
 
 
 def _survives_a_killed_worker(batch: subprocess.Popen[str], head: subprocess.Popen[bytes], jobs: Path, out: Path) -> None:
@@ -174,7 +191,17 @@ def _survives_a_killed_worker(batch: subprocess.Popen[str], head: subprocess.Pop
     assert summary["episodes"] == 8 and summary["errors"] == 0, summary
     assert retried, f"no second attempt of job {victim['job']} was seen starting"
     # The killed episode ran again: every episode folder has its result.
-    assert all((out / f"episode-{i:03}" / "result.json").is_file() for i in range(8))
+    missing = {d.name: sorted(p.name for p in d.iterdir()) if d.is_dir() else None
+               for d in (out / f"episode-{i:03}" for i in range(8)) if not (d / "result.json").is_file()}
+    assert not missing, (missing, sorted(p.name for p in out.iterdir()), victim["job"])
+    # Each folder written where it stays: every link leads somewhere (they are absolute), no
+    # file names a try folder, nothing beside the episodes.
+    for base, dirs, files in os.walk(out):
+        for name in dirs + files:
+            p = Path(base) / name
+            assert not p.is_symlink() or p.exists(), f"{p} links to {os.readlink(p)}, which is not there"
+            assert not (p.is_file() and not p.is_symlink() and b".removed-" in p.read_bytes()), p
+    assert sorted(p.name for p in out.iterdir()) == ["batch.json"] + [f"episode-{i:03}" for i in range(8)]
     assert json.loads((out / "batch.json").read_text())["episodes"] == 8
     # Every job is gone: no folder, no shared memory, no iceoryx2 root of any job of this batch.
     assert not list(jobs.glob("*/job.json")), list(jobs.iterdir())

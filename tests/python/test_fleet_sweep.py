@@ -1,13 +1,16 @@
 """The fleet's sweep (fleet/py/r2g_fleet.py) on job folders this test writes: it ends the session
 of a dead job only when a process of that session proves it is the job's, never a process a
 stale job.json merely names (one the test started outside any job, or a pid reused by a younger
-process), and sweeps running side by side in threads never trip over each other. Every process
-here is one this test started, signalled only by its pid."""
+process), and sweeps running side by side in threads never trip over each other. A job's own
+episode folder is kept only from a try that ended with its result. Every process here is one
+this test started, signalled only by its pid (the killed episode's through a pidfd, after
+checking it is still the job's)."""
 from __future__ import annotations
 
 import importlib.util
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -18,7 +21,7 @@ from typing import Iterator
 
 import pytest
 
-from conftest import ROOT
+from conftest import R2G, ROOT
 
 _spec = importlib.util.spec_from_file_location("r2g_fleet", ROOT / "fleet" / "py" / "r2g_fleet.py")
 assert _spec is not None and _spec.loader is not None
@@ -173,3 +176,74 @@ def test_the_jobs_root_must_be_this_users_own_folder(tmp_path: Path, monkeypatch
         fleet.jobs_root()
     monkeypatch.delenv("R2G_FLEET_DIR")
     assert fleet.jobs_root() == Path(f"/tmp/r2g-fleet-{os.getuid()}")
+
+
+def _fleet_run(out: Path, tmp: Path, env: dict[str, str]) -> subprocess.Popen[str]:
+    """One `r2g episode` (a scripted one: synthetic model answers) into `out`, as a fleet job on
+    one local worker: what `r2g batch --workers 1` runs for each episode."""
+    jobs = tmp / f"jobs-{uuid.uuid4().hex[:6]}.json"
+    args = ["episode", "pick_block_plate", "--max-decisions", "2", "--out", str(out)]
+    jobs.write_text(json.dumps([{"id": 0, "args": args, "cwd": str(ROOT), "out": str(out)}]))
+    return subprocess.Popen([sys.executable, str(ROOT / "fleet" / "py" / "r2g_fleet.py"), "run", "--jobs", str(jobs),
+                             "--r2g", str(R2G), "--local", "1"], env=env, stdout=subprocess.PIPE, text=True)
+
+
+def _result(p: subprocess.Popen[str]) -> dict[str, object]:
+    stdout, _ = p.communicate(timeout=240)
+    assert p.returncode == 0
+    return json.loads(stdout.strip().splitlines()[-1])
+
+
+def test_an_episode_folder_is_kept_only_from_a_try_that_ended_with_its_result(root: Path, tmp_path: Path) -> None:
+    """A folder an earlier try left is gone before the next try writes; a try killed by a
+    signal while its worker lives (as the OOM killer would) leaves no folder; a try that ends
+    leaves a whole one, written where it stays (its links lead somewhere)."""
+    out = tmp_path / "b" / "episode-000"
+    env = dict(os.environ, R2G_FLEET_DIR=str(root))
+    env.pop("R2G_IPC_CONFIG", None)
+    # 1. A leftover of a dead try; this try is SIGKILLed once its episode has begun writing.
+    out.mkdir(parents=True)
+    (out / "stale.txt").write_text("an earlier try's")
+    p = _fleet_run(out, tmp_path, env)
+    try:
+        killed = None
+        deadline = time.monotonic() + 120
+        while killed is None and time.monotonic() < deadline and p.poll() is None:
+            for f in root.glob("r2gj*/job.json"):
+                try:
+                    facts = json.loads(f.read_text())
+                except ValueError:
+                    continue
+                leader = int(facts.get("leader") or 0)
+                if leader and out.is_dir() and not (out / "stale.txt").exists() and (out / "scratch").exists():
+                    # The job's own r2g (a child of this test's driver), checked by its start time
+                    # through a pidfd before the signal.
+                    fd = os.pidfd_open(leader)
+                    try:
+                        assert _start_time(leader) == facts["leader_start"]
+                        assert int(Path(f"/proc/{leader}/stat").read_text().rsplit(")", 1)[1].split()[1]) == p.pid
+                        signal.pidfd_send_signal(fd, signal.SIGKILL)
+                        killed = leader
+                    finally:
+                        os.close(fd)
+                    break
+            time.sleep(0.05)
+        assert killed, "the episode was not seen writing its folder"
+        first = _result(p)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    print("a killed try:", json.dumps({k: first[k] for k in ("rc", "value")}))
+    assert first["rc"] == -signal.SIGKILL and first["value"] is None, first
+    assert sorted(x.name for x in out.parent.iterdir()) == [], list(out.parent.iterdir())
+    # 2. Another leftover; this try ends (the scripted episode may or may not achieve its task
+    # in 2 decisions: exit 0 or 1, both whole episodes).
+    out.mkdir()
+    (out / "stale.txt").write_text("an earlier try's")
+    second = _result(_fleet_run(out, tmp_path, env))
+    assert second["rc"] in (0, 1) and isinstance(second["value"], dict), second
+    assert (out / "result.json").is_file() and not (out / "stale.txt").exists()
+    assert sorted(x.name for x in out.parent.iterdir()) == ["episode-000"]
+    links = [x for x in out.rglob("*") if x.is_symlink()]
+    assert links and all(x.exists() for x in links), [x for x in links if not x.exists()]
