@@ -283,8 +283,12 @@ pub fn episode(o: &EpisodeOpts) -> anyhow::Result<EpisodeResult> {
     let eval = eval?;
     result.success = eval["success"].as_bool().unwrap_or(false);
     result.evaluation = eval;
-    std::fs::write(run_dir.join("result.json"), serde_json::to_vec_pretty(&result)?)?;
-    crate::viewer::write(&run_dir)?;
+    // The page first, the result last and whole: a run folder with result.json is complete.
+    crate::viewer::write_with(&run_dir, serde_json::to_value(&result)?)?;
+    let path = run_dir.join("result.json");
+    let tmp = run_dir.join(".result.json.partial");
+    std::fs::write(&tmp, serde_json::to_vec_pretty(&result)?)?;
+    std::fs::rename(&tmp, &path)?;
     Ok(result)
 }
 

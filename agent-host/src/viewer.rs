@@ -12,6 +12,12 @@ fn read_json(p: &Path) -> Value {
 
 /// Writes `index.html` for the run in `dir` (and returns its path).
 pub fn write(dir: &Path) -> anyhow::Result<std::path::PathBuf> {
+    write_with(dir, read_json(&dir.join("result.json")))
+}
+
+/// [`write`] with the run's result given (an episode writes `result.json` after the page, last,
+/// so a run folder that has it is whole).
+pub fn write_with(dir: &Path, result: Value) -> anyhow::Result<std::path::PathBuf> {
     let rounds: Vec<Value> = std::fs::read_to_string(dir.join("transcript.jsonl"))
         .unwrap_or_default()
         .lines()
@@ -36,7 +42,7 @@ pub fn write(dir: &Path) -> anyhow::Result<std::path::PathBuf> {
             r
         })
         .collect();
-    let data = json!({"config": read_json(&dir.join("config.json")), "result": read_json(&dir.join("result.json")),
+    let data = json!({"config": read_json(&dir.join("config.json")), "result": result,
                       "rounds": rounds, "skills": read_json(&dir.join("skills.json"))});
     // No `<`, `>` or `&` in the data block: model or program text cannot end it or change how
     // the HTML parser reads it (JSON allows the \u escapes).
