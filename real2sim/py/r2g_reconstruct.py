@@ -24,6 +24,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import time
@@ -416,6 +417,22 @@ def bowl_parts(c: np.ndarray, radius: float, height: float, z_bottom: float) -> 
     return spec, volume
 
 
+def bin_parts(axes: np.ndarray, half: np.ndarray, height: float, c: np.ndarray, z_bottom: float) -> tuple[dict, float]:
+    """An open rectangular body as a compound: a floor box and four wall boxes (walls WALL_M, floor
+    FLOOR_M), its frame turned to the rectangle's sides, origin at the centre of its underside."""
+    hx, hy = float(half[0]), float(half[1])
+    w = WALL_M / 2
+    parts = [{"shape": "box", "size_m": [r(hx), r(hy), r(FLOOR_M / 2)], "position_m": [0.0, 0.0, r(FLOOR_M / 2)]}]
+    for x, y, sx, sy in ((hx - w, 0.0, w, hy), (-(hx - w), 0.0, w, hy), (0.0, hy - w, hx, w), (0.0, -(hy - w), hx, w)):
+        parts.append({"shape": "box", "size_m": [r(sx), r(sy), r(height / 2)], "position_m": [r(x), r(y), r(height / 2)]})
+    yaw = math.atan2(axes[1, 0], axes[0, 0])
+    spec = {"position_m": [r(c[0]), r(c[1]), r(z_bottom + LIFT_M)], "quat_wxyz": [r(v, 6) for v in quat_yaw(yaw)],
+            "parts": parts, "cavity_min_m": [r(-(hx - WALL_M)), r(-(hy - WALL_M)), 0.0],
+            "cavity_max_m": [r(hx - WALL_M), r(hy - WALL_M), r(height)]}
+    volume = 4 * hx * hy * FLOOR_M + 2 * (2 * hy) * WALL_M * height + 2 * (2 * hx) * WALL_M * height
+    return spec, volume
+
+
 def _free_space_fit(o: Any, plane: Any, bottom: float, centre2: np.ndarray, fs: "rparts.FreeSpace",
                     foreign: Optional[np.ndarray], evidence: dict) -> Optional[tuple[str, dict, float]]:
     """For an object the footprint makes a box or a hull: (shape, spec, volume) of a better fit
@@ -451,8 +468,17 @@ def _free_space_fit(o: Any, plane: Any, bottom: float, centre2: np.ndarray, fs: 
         evidence["container"] = {"radius_m": r(cont["radius"], 4), "height_m": r(cont["height"], 4),
                                  "wall_points": r(cont["inliers"], 3),
                                  "middle_seen_empty": r(cont["middle_seen_empty"], 3),
+                                 "footprint_fill": r(cont["footprint_fill"], 3),
                                  "attached_points": int(len(cont["rest"])), "attached_parts": len(extra),
                                  "cuts": cuts}
+        return "container", spec, volume
+    binf = rparts.box_container_fit(P, base_z, fs)
+    if binf is not None:
+        spec, volume = bin_parts(binf["axes"], binf["half"], binf["height"], binf["centre"], base_z)
+        evidence["container"] = {"footprint": "rectangle", "half_m": [r(v, 4) for v in binf["half"]],
+                                 "height_m": r(binf["height"], 4),
+                                 "middle_seen_empty": r(binf["middle_seen_empty"], 3),
+                                 "footprint_fill": r(binf["footprint_fill"], 3)}
         return "container", spec, volume
     # The box or hull as fitted: does it hold space a view saw through?
     S = rp.voxel_downsample(P, 0.003)[0] if len(P) > 3000 else P
@@ -460,27 +486,42 @@ def _free_space_fit(o: Any, plane: Any, bottom: float, centre2: np.ndarray, fs: 
     h = rparts.hull_of(Q)
     if h is None:
         return None
+    # The size guard comes before any sampling of the hull: furniture is neither checked nor cut.
+    if h.volume > rparts.MAX_DECOMPOSE_M3:
+        evidence["not_decomposed"] = (f"hull of {h.volume * 1e3:.1f} l: objects over "
+                                      f"{rparts.MAX_DECOMPOSE_M3 * 1e3:.0f} l (furniture) are not checked against "
+                                      "free space nor cut into parts")
+        return None
     E, cell = rparts.not_ours(h, fs, foreign)
     seen = float(len(E) * cell)
     evidence["hull_seen_empty_cm3"] = r(seen * 1e6, 2)
     if seen < 4 * rparts.EMPTY_TOL_M3 and seen < 0.03 * h.volume:
         return None
-    if h.volume > rparts.MAX_DECOMPOSE_M3:
-        evidence["not_decomposed"] = (f"hull of {h.volume * 1e3:.1f} l holds {seen * 1e6:.0f} cm^3 seen empty, but objects "
-                                      f"over {rparts.MAX_DECOMPOSE_M3 * 1e3:.0f} l (furniture) are not cut into parts")
-        return None
     dec = rparts.decompose(Q, fs, foreign)
     keep = [X for X in dec["parts"] if len(X) >= rparts.MIN_PART_POINTS]
+    if not keep:
+        evidence["not_decomposed"] = (f"every part of the cut hull has under {rparts.MIN_PART_POINTS} points: "
+                                      "kept whole")
+        return None
     origin = np.array([centre2[0], centre2[1], base_z])
     parts, volume = rparts.part_specs(keep, origin)
     spec = {"position_m": [r(origin[0]), r(origin[1]), r(origin[2] + LIFT_M)], "parts": parts}
     # Its cavity: the box spanning the space seen empty inside the first hull (between the
-    # parts: a rack's slots, the room under a peg), from the lowest such point to the top.
+    # parts: a rack's slots, the room under a peg), from the lowest such point to the top. An
+    # axis where that space is thinner than one sample cell (one grid column of a narrow slot, a
+    # flat sheet of another object's points) is widened to one cell about its middle.
     E = dec["empty"]
     if len(E) >= 8:
         lo = np.quantile(E, 0.02, axis=0) - origin
         hi = np.quantile(E, 0.98, axis=0) - origin
-        hi[2] = float(h.points[h.vertices][:, 2].max() - origin[2])
+        hi[2] = max(float(h.points[h.vertices][:, 2].max() - origin[2]), float(hi[2]))
+        edge = max(float(dec["cell_m3"]) ** (1 / 3), 0.002)
+        thin = (hi - lo) < edge
+        if thin.any():
+            mid = (lo + hi) / 2
+            lo = np.where(thin, mid - edge / 2, lo)
+            hi = np.where(thin, mid + edge / 2, hi)
+            evidence["cavity_widened_axes"] = [ax for ax, t in zip("xyz", thin) if t]
         spec["cavity_min_m"] = [r(v) for v in lo]
         spec["cavity_max_m"] = [r(v) for v in hi]
     evidence["decomposition"] = {"parts": len(parts), "cuts": dec["cuts"],
@@ -726,6 +767,9 @@ def apply_names(names: dict, objects: list, scene: Any, clusters: list, where: s
     taken: dict = {}
     fixed: dict = {}
     for new, how in names.items():
+        if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", new):
+            raise FramesError(f"{where}: [names] {new!r}: a name is letters, digits, '_', '.' and '-' (it names "
+                              "files under meshes/ too)")
         if isinstance(how, dict):
             bad = set(how) - {"prompt", "at", "fixed"}
             if bad or ("prompt" in how) == ("at" in how) or not isinstance(how.get("fixed", False), bool):
@@ -781,8 +825,8 @@ def check_rules(task: dict, objects: list) -> None:
             o = next(o for o in objects if o["name"] == c)
             if "cavity_min_m" not in o:
                 raise FramesError(f"task rule {i + 1} ({rule.get('kind')}) needs container '{c}' to be hollow, but the "
-                                  f"reconstruction made it a solid {o['_kind']} (only round bowls, cups and objects cut "
-                                  "into parts around space the frames saw empty get a cavity)")
+                                  f"reconstruction made it a solid {o['_kind']} (only round bowls, cups, open bins and "
+                                  "objects cut into parts around space the frames saw empty get a cavity)")
         if rule.get("kind") == "joint":
             raise FramesError(f"task rule {i + 1} (joint) needs an articulated fixture; reconstructed fixtures are static "
                               "objects (doors and drawers from the optional model: not yet)")
@@ -895,6 +939,9 @@ def cmd_fit(a: argparse.Namespace) -> None:
         chosen = spec["_fit"]["chosen"]
         kind = {"box": "box", "cylinder": "cylinder", "sphere": "ball", "mesh": "object", "disc": "disc",
                 "container": "cup", "parts": "object"}.get(chosen, "bowl")
+        rect = (spec["_fit"].get("container") or {}).get("footprint") == "rectangle"
+        if rect:
+            kind = "bin"
         base = f"{o.color_name}_{kind}".replace(" ", "_")
         used_names[base] = used_names.get(base, 0) + 1
         name = base if used_names[base] == 1 else f"{base}_{used_names[base]}"
@@ -920,7 +967,7 @@ def cmd_fit(a: argparse.Namespace) -> None:
         obj["mass_kg"] = spec["mass_kg"]
         obj["rgba"] = colour_of(o, plane)
         obj["_fit"] = spec["_fit"]
-        obj["_kind"] = {"container": "cup", "parts": "compound", "disc": "disc"}.get(
+        obj["_kind"] = "bin" if rect else {"container": "cup", "parts": "compound", "disc": "disc"}.get(
             chosen, "bowl" if "parts" in spec else spec["shape"])
         if "_mesh" in spec:
             obj["_mesh"] = spec["_mesh"]
@@ -1043,8 +1090,10 @@ def write_scene(stage: Path, model: dict) -> None:
         for k, p in enumerate(o.get("parts", [])):
             if "_mesh" in p:
                 (stage / "meshes").mkdir(exist_ok=True)
-                (stage / "meshes" / f"{o['name']}_part{k}.obj").write_text(obj_text(p["_mesh"]))
-                p["mesh"] = f"meshes/{o['name']}_part{k}.obj"
+                # A folder per object: no part's file can take the name of another object's mesh.
+                (stage / "meshes" / o["name"]).mkdir(parents=True, exist_ok=True)
+                (stage / "meshes" / o["name"] / f"part{k}.obj").write_text(obj_text(p["_mesh"]))
+                p["mesh"] = f"meshes/{o['name']}/part{k}.obj"
     tmp = stage / ".scene.toml.tmp"
     tmp.write_text(scene_toml(model))
     os.replace(tmp, stage / "scene.toml")
@@ -1208,9 +1257,11 @@ def correct(o: dict, views: list, plane: Any) -> dict:
     dtop = float(np.average(tops[:, 0] - tops[:, 1], weights=wts))
     out: dict = {}
     kind = o["_kind"]
-    # A compound cut around seen-empty space, a cup with a handle or a disc on edge is placed by
-    # its fit against other objects' solids: a centroid shift of its visible pixels would push
-    # it into them, so only its colour is corrected.
+    # Only the colour of these is corrected. A compound cut around seen-empty space and a disc
+    # on edge are placed by their fit against the other objects' points and solids: a centroid
+    # shift of their visible pixels would push them into their neighbours. A cup is placed by
+    # the circle fitted to its walls, which the source masks (the reconstruction's own
+    # segmentation, handle and rim included) measure less well.
     fitted_in_place = kind in ("compound", "cup", "disc")
     if np.linalg.norm(dxy) > 0.0015 and not fitted_in_place:
         o["position_m"][0] = r(o["position_m"][0] + dxy[0])

@@ -14,6 +14,8 @@ whether some source view saw through them. With it:
 * `container_fit`: an open-topped round body (a cup, a mug without its handle) found by a robust
   circle fit of the points seen from outside, whose middle is seen empty: a floor disc and wall
   boxes like the bowls, with whatever lies outside the circle (a handle) decomposed as above.
+* `box_container_fit`: the same for an open-topped rectangular body (a bin, a tray): walls on
+  the outline of its minimum-area rectangle, nothing standing inside them, its middle seen empty.
 * `disc_fit`: a flat cloud standing on edge (a plate in a rack) whose outline in its own plane is
   a circle: a cylinder whose axis is the cloud's normal.
 
@@ -115,19 +117,56 @@ def hull_of(P: np.ndarray) -> Optional[Any]:
         return None
 
 
+INSIDE_CHUNK = 1_000_000
+"""`inside` tests points against the hull's faces in chunks of at most about this many
+point-face pairs, so its memory stays bounded (tens of MB) whatever the number of points."""
+
+
 def inside(hull: Any, X: np.ndarray, tol: float = 1e-9) -> np.ndarray:
     eq = hull.equations
-    return (X @ eq[:, :3].T + eq[:, 3] <= tol).all(axis=1)
+    X = np.asarray(X, dtype=float)
+    rows = max(1, INSIDE_CHUNK // max(1, len(eq)))
+    out = np.empty(len(X), dtype=bool)
+    for k in range(0, len(X), rows):
+        out[k:k + rows] = (X[k:k + rows] @ eq[:, :3].T + eq[:, 3] <= tol).all(axis=1)
+    return out
+
+
+GRID_FACTOR = 4
+"""The grid laid over a hull's box has at most this many times `VOXELS` points."""
+
+
+def _grid_axes(lo: np.ndarray, hi: np.ndarray, step: float) -> list:
+    return [np.arange(a + step / 2, b, step) if b - a > step else np.array([(a + b) / 2]) for a, b in zip(lo, hi)]
 
 
 def samples_in(hull: Any, max_n: int = VOXELS) -> tuple[np.ndarray, float]:
-    """A regular grid of points inside the hull (deterministic), and the cell volume."""
+    """A regular grid of points inside the hull (deterministic), and the cell volume: about
+    `max_n` points inside, never more than GRID_FACTOR * max_n in the box the grid is laid over.
+    That box is the hull's box along the world axes where the grid over it stays within that
+    bound (most objects stand square to them); otherwise (a thin board standing at an angle, a
+    slanted rod) its box along its own principal axes, with a step grown until the bound holds."""
     V = hull.points[hull.vertices]
-    lo, hi = V.min(0), V.max(0)
     vol = max(float(hull.volume), 1e-12)
     step = max(0.002, (vol / max_n) ** (1 / 3))
-    axes = [np.arange(a + step / 2, b, step) if b - a > step else np.array([(a + b) / 2]) for a, b in zip(lo, hi)]
-    G = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    limit = GRID_FACTOR * max_n
+    lo, hi = V.min(0), V.max(0)
+    axes = _grid_axes(lo, hi, step)
+    if math.prod(len(a) for a in axes) <= limit:
+        G = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        return G[inside(hull, G)], step ** 3
+    c = V.mean(0)
+    _, _, Vt = np.linalg.svd(V - c, full_matrices=False)
+    L = (V - c) @ Vt.T
+    lo, hi = L.min(0), L.max(0)
+    box = max(float(np.prod(hi - lo)), vol)
+    step = max(step, (box / limit) ** (1 / 3))
+    axes = _grid_axes(lo, hi, step)
+    # Axes thinner than a step still get one sample each: grow the step until the bound holds.
+    while math.prod(len(a) for a in axes) > limit:
+        step *= 1.2
+        axes = _grid_axes(lo, hi, step)
+    G = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3) @ Vt + c
     return G[inside(hull, G)], step ** 3
 
 
@@ -372,6 +411,11 @@ def trimmed_circle(xy: np.ndarray, keep: float = 0.9, rounds: int = 8, tol: floa
     return c, rad, res <= tol * rad
 
 
+ROUND_FILL = 0.9
+"""A container's footprint must fill less than this of its minimum-area rectangle (as the
+footprint test of round objects in r2g_reconstruct.py)."""
+
+
 def container_fit(P: np.ndarray, plane_z: float, fs: FreeSpace) -> Optional[dict]:
     """An open-topped round body in the points (a cup, a mug): most points on a vertical circle
     (its walls, seen from outside and inside), its middle seen empty above the floor. Returns
@@ -383,6 +427,14 @@ def container_fit(P: np.ndarray, plane_z: float, fs: FreeSpace) -> Optional[dict
         return None
     c, rad, inl = trimmed_circle(S[:, :2], tol=0.12)
     if not (0.015 <= rad <= 0.15) or inl.mean() < 0.6:
+        return None
+    # The band is wide (a wall seen from outside and inside is 12 % of a cup's radius), wide
+    # enough for most points of a square bin's walls too (their footprint, corners cut off by
+    # the band, is an octagon). So the whole footprint must be round: filling under ROUND_FILL
+    # of its minimum-area rectangle (a circle fills 0.79, less with a handle; a square 1).
+    _, _, ext, area = rp.min_area_rect(S[:, :2])
+    fill = area / max(float(ext[0] * ext[1]), 1e-12)
+    if fill >= ROUND_FILL:
         return None
     d = np.linalg.norm(S[:, :2] - c, axis=1)
     outer = float(np.quantile(d[inl], 0.95))
@@ -400,7 +452,58 @@ def container_fit(P: np.ndarray, plane_z: float, fs: FreeSpace) -> Optional[dict
         return None
     rest = P[np.linalg.norm(P[:, :2] - c, axis=1) > outer + 0.003]
     return {"centre": c, "radius": outer, "height": top, "rest": rest, "inliers": float(inl.mean()),
-            "middle_seen_empty": frac}
+            "middle_seen_empty": frac, "footprint_fill": float(fill)}
+
+
+def box_container_fit(P: np.ndarray, plane_z: float, fs: FreeSpace) -> Optional[dict]:
+    """An open-topped rectangular body in the points (a bin, a tray): a footprint that fills its
+    minimum-area rectangle (at least ROUND_FILL; round ones are `container_fit`'s), every point
+    either near the rectangle's outline (its walls, each of the four seen) or low (its floor),
+    and its upper middle seen empty as in `container_fit`. Returns {"centre", "axes" (2x2, the
+    rectangle's sides as columns), "half" (outer half extents), "height", "band",
+    "middle_seen_empty", "footprint_fill"} or None."""
+    import robo_perception as rp
+
+    S = rp.voxel_downsample(P, 0.003)[0] if len(P) > 400 else P
+    if len(S) < 60:
+        return None
+    c, axes, ext, area = rp.min_area_rect(S[:, :2])
+    fill = area / max(float(ext[0] * ext[1]), 1e-12)
+    half = np.asarray(ext, dtype=float) / 2
+    if fill < ROUND_FILL or not (0.015 <= half.min() and half.max() <= 0.25):
+        return None
+    h = S[:, 2] - plane_z
+    top = float(np.quantile(h, 0.99))
+    if top < 0.02:
+        return None
+    L = (S[:, :2] - c) @ axes
+    band = max(0.006, 0.1 * float(half.min()))
+    if half.min() < 2 * band:
+        return None
+    d = np.min(half[None, :] - np.abs(L), axis=1)
+    # Nothing stands inside the walls above the floor: no divider, no peg, no solid top.
+    inner_high = (d > band) & (h > max(0.012, 0.25 * top))
+    if inner_high.mean() > 0.03:
+        return None
+    high = h > 0.5 * top
+    for k in range(2):
+        for sign in (-1.0, 1.0):
+            side = high & (np.abs(sign * L[:, k] - half[k]) < band)
+            if side.sum() < 10:
+                return None
+    pts = []
+    ring = np.linspace(0, 2 * math.pi, 12, endpoint=False)
+    for f in (0.0, 0.3, 0.6):
+        for t in (ring if f else ring[:1]):
+            for z in (0.7, 0.8, 0.9):
+                loc = np.array([f * half[0] * math.cos(t), f * half[1] * math.sin(t)])
+                xy = c + axes @ loc
+                pts.append([xy[0], xy[1], plane_z + z * top])
+    frac = float(fs.empty(np.array(pts)).mean())
+    if frac < 0.6:
+        return None
+    return {"centre": np.asarray(c, dtype=float), "axes": np.asarray(axes, dtype=float), "half": half, "height": top,
+            "band": band, "middle_seen_empty": frac, "footprint_fill": float(fill)}
 
 
 def disc_fit(P: np.ndarray) -> Optional[dict]:
@@ -454,7 +557,8 @@ def support_columns(S: np.ndarray, fs: FreeSpace, base_z: float, lo: np.ndarray,
                     clearance: float = 0.004, step: float = 0.004, reach: float = 0.015) -> np.ndarray:
     """Points for what must hold up a resting object no camera sees under: `S` fills the
     object's fitted solid; below its underside (less `clearance`), within the supporting
-    object's horizontal extent lo..hi, the columns down to `base_z` that no view saw empty. A
+    object's horizontal extent lo..hi, a column down towards `base_z`, cut above its first
+    sample (from the top) that a view saw empty. A
     plate standing in a holder hides the holder's chocks; these columns give the holder a cradle
     under the plate's rim instead of nothing."""
     S = S[(S[:, 0] >= lo[0]) & (S[:, 0] <= hi[0]) & (S[:, 1] >= lo[1]) & (S[:, 1] <= hi[1])]
@@ -479,5 +583,14 @@ def support_columns(S: np.ndarray, fs: FreeSpace, base_z: float, lo: np.ndarray,
     if not out:
         return np.zeros((0, 3))
     C = np.concatenate(out)
-    return C[~fs.empty(C)]
+    emp = fs.empty(C)
+    # Each column (samples from the top down) ends above its first seen-empty sample: what lies
+    # below a gap a view saw through does not hold the object up (as in `grounded`).
+    keep, k = [], 0
+    for col in out:
+        e = emp[k:k + len(col)]
+        k += len(col)
+        first = int(np.argmax(e)) if e.any() else len(col)
+        keep.append(col[:first])
+    return np.concatenate(keep)
 

@@ -142,6 +142,13 @@ def test_task_naming_an_unknown_object(frames, tmp_path):
                  frames / "joints.json", "--task", task)
 
 
+def test_task_name_that_is_a_path_refused(frames, tmp_path):
+    """A [names] key names files under meshes/ too: one with a slash is refused, nothing written."""
+    task = tmp_path / "task.toml"
+    task.write_text('[task]\ninstruction = "x"\n[names]\n"../x" = [0.5, 0.0]\n')
+    expect_error(tmp_path, frames, "[names] '../x': a name is letters, digits", frames / "joints.json", "--task", task)
+
+
 def test_demonstration_reanchored_to_moved_block(tmp_path):
     """Synthetic: frames of pick_block_plate with the block 3 cm further from the robot than in
     the scene its demonstration was recorded in. Re-anchored (the task file names that scene),

@@ -6,8 +6,11 @@ the dish rack a compound with a cavity, so `inside rack` can be stated."""
 from __future__ import annotations
 
 import json
+import math
 import sys
+import time
 import tomllib
+from types import SimpleNamespace
 from pathlib import Path
 
 import numpy as np
@@ -17,11 +20,12 @@ from scipy.spatial import ConvexHull
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "real2sim" / "py"))
 import r2g_reconstruct_eval as ev  # noqa: E402
+import r2g_reconstruct_parts as rparts  # noqa: E402
 
 R2G = ROOT / "target" / "release" / "r2g"
 
 
-@pytest.fixture(autouse=True)
+@pytest.fixture
 def _built():
     if not R2G.is_file():
         pytest.fail(f"{R2G} missing: run `make build` first")
@@ -47,7 +51,7 @@ def solid_at(gym: Path, obj: dict, world: np.ndarray) -> list[int]:
     return hits
 
 
-def test_hang_mug_keeps_the_handle_hole_and_validates(tmp_path):
+def test_hang_mug_keeps_the_handle_hole_and_validates(tmp_path, _built):
     """Synthetic hang_mug: the mug is an open cup (floor and walls) with its handle cut into
     convex parts around the hole; the mug rack is cut into parts that leave the room under the
     slanted peg empty; and the reconstructed gym passes `r2g validate` with the gym's own
@@ -65,6 +69,11 @@ def test_hang_mug_keeps_the_handle_hole_and_validates(tmp_path):
     kinds = {o["name"]: o["kind"] for o in rep["objects"]}
     assert kinds == {"mug": "cup", "mug_hook": "compound"}, kinds
     mug, hook = by["mug"], by["mug_hook"]
+    # Mesh parts are written in a folder per object (no part file can take another object's name).
+    for o in (mug, hook):
+        for p in o["parts"]:
+            if p["shape"] == "mesh":
+                assert p["mesh"].startswith(f"meshes/{o['name']}/part") and (gym / p["mesh"]).is_file(), p
     # Floor, 16 walls and at least two handle parts.
     assert len(mug["parts"]) >= 19, mug["parts"]
     # The handle's hole (between the wall at x = 0.032 and the outer bar at x = 0.068, between
@@ -87,7 +96,7 @@ def test_hang_mug_keeps_the_handle_hole_and_validates(tmp_path):
     assert res["validate"]["success"], res
 
 
-def test_shelf_plate_disc_on_edge_and_rack_with_a_cavity(tmp_path):
+def test_shelf_plate_disc_on_edge_and_rack_with_a_cavity(tmp_path, _built):
     """Synthetic shelf_plate: the plate standing in its holder is a cylinder with its axis
     horizontal (within 1 cm and 2 mm of radius of the truth); the dish rack is a compound with a
     cavity holding the middle slot's standing plate centre, its slots left open; so the task's
@@ -112,3 +121,247 @@ def test_shelf_plate_disc_on_edge_and_rack_with_a_cavity(tmp_path):
     for z in (0.05, 0.08):
         assert solid_at(gym, rack, [0.5, 0.2, z]) == [], f"the middle slot is closed at z={z}"
     assert solid_at(gym, rack, [0.5, 0.214, 0.08]), "no divider"
+
+
+# --------------------------------------------------------------------------------------------
+# FreeSpace and the hull sampling on synthetic views and point clouds
+# --------------------------------------------------------------------------------------------
+
+def _view(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float, T: np.ndarray = None) -> SimpleNamespace:
+    return SimpleNamespace(depth=depth, intrinsics={"fx": fx, "fy": fy, "cx": cx, "cy": cy},
+                           base_from_camera=np.eye(4) if T is None else T)
+
+
+def _at(u: float, v: float, z: float, fx: float = 50.0, fy: float = 50.0, cx: float = 20.0, cy: float = 12.0) -> list:
+    """The camera-frame (= world here) point at depth z on pixel (u, v)."""
+    return [(u - cx) * z / fx, (v - cy) * z / fy, z]
+
+
+def test_free_space_of_a_synthetic_view():
+    """Synthetic 60x40 view, principal point off the centre (cx 20, cy 12): a surface 1 m away is
+    seen only on the patch u 30..39, v 5..19; NaN (unknown, as the robot's pixels) elsewhere. A
+    point in front of a seen pixel is empty; behind it, within the noise margin of it, on an
+    unknown pixel, behind the camera or outside the image it is not."""
+    d = np.full((40, 60), np.nan)
+    d[5:20, 30:40] = 1.0
+    fs = rparts.FreeSpace([_view(d, 50.0, 50.0, 20.0, 12.0)])
+    P = np.array([
+        _at(35, 12, 0.5),    # in front of the seen patch: empty
+        _at(35, 12, 0.98),   # 2 cm in front of it: empty
+        _at(35, 12, 0.995),  # within the margin (4 mm + 0.5 % of the depth): not empty
+        _at(35, 12, 1.2),    # behind the surface: not empty
+        _at(25, 12, 0.5),    # an unknown (NaN) pixel: not empty
+        [-_at(35, 12, 0.5)[0], -_at(35, 12, 0.5)[1], -0.5],  # behind the camera, on the same ray's pixel
+        _at(75, 12, 0.5),    # right of the image
+        _at(35, -8, 0.5),    # above the image
+    ])
+    assert fs.empty(P).tolist() == [True, True, False, False, False, False, False, False]
+    # Had the principal point been taken as the image centre (30, 20), (35, 12) would fall on
+    # (45, 20), an unknown pixel: the off-centre cx, cy are what make the first point empty.
+    centred = rparts.FreeSpace([_view(d, 50.0, 50.0, 30.0, 20.0)])
+    assert not centred.empty(P[:1]).any()
+    # A camera moved and turned (base_from_camera): the same answer for the moved points.
+    a = math.radians(30)
+    T = np.eye(4)
+    T[:3, :3] = [[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]]
+    T[:3, 3] = [0.3, -0.2, 0.5]
+    moved = rparts.FreeSpace([_view(d, 50.0, 50.0, 20.0, 12.0, T)])
+    assert moved.empty(P @ T[:3, :3].T + T[:3, 3]).tolist() == [True, True, False, False, False, False, False, False]
+
+
+def _board(width: float, yaw_deg: float) -> np.ndarray:
+    """A synthetic board `width` square, 4 mm thick, standing on edge, turned by yaw."""
+    a = math.radians(yaw_deg)
+    n = np.array([math.cos(a), math.sin(a), 0.0])
+    t = np.array([-math.sin(a), math.cos(a), 0.0])
+    u, v = np.meshgrid(np.linspace(-width / 2, width / 2, 80), np.linspace(0.0, width, 80))
+    face = u.reshape(-1, 1) * t + v.reshape(-1, 1) * np.array([0.0, 0.0, 1.0])
+    return np.concatenate([face + s * n for s in (-0.002, 0.002)])
+
+
+def test_hull_samples_are_bounded_for_a_tilted_thin_board():
+    """A 40 cm board 4 mm thick standing on edge at 45 degrees of yaw (its world-axes box is ~280
+    times its volume): the grid is laid in the board's own axes, so it holds at most
+    GRID_FACTOR x VOXELS points, the samples inside are about as many as for the board turned
+    square to the axes, and it takes well under a second (it once took gigabytes)."""
+    counts = {}
+    for yaw in (0.0, 45.0):
+        h = rparts.hull_of(_board(0.4, yaw))
+        t0 = time.perf_counter()
+        G, cell = rparts.samples_in(h)
+        dt = time.perf_counter() - t0
+        assert dt < 1.0, dt
+        assert 0 < len(G) <= rparts.GRID_FACTOR * rparts.VOXELS, len(G)
+        assert rparts.inside(h, G).all()
+        counts[yaw] = len(G)
+        # The samples cover the board: its corners are within two cells of some sample.
+        edge = cell ** (1 / 3)
+        corners = h.points[h.vertices]
+        near = np.linalg.norm(corners[:, None, :] - G[None, :, :], axis=2).min(1)
+        assert near.max() < 2 * edge + 0.004, near.max()
+    assert 0.5 < counts[45.0] / counts[0.0] < 2.0, counts
+    # `inside` in chunks gives the answer of the one-shot test.
+    X = np.random.default_rng(0).uniform(-0.3, 0.5, size=(5000, 3))
+    eq = h.equations
+    assert (rparts.inside(h, X) == (X @ eq[:, :3].T + eq[:, 3] <= 1e-9).all(1)).all()
+
+
+def _top_view_of_a_bin(half: float, height: float, round_: bool) -> SimpleNamespace:
+    """A synthetic camera 1 m above an open container (square of half side `half`, or round of
+    radius `half`) standing at the origin: it sees the floor (5 mm) inside, the rim, and the
+    table outside."""
+    W = H = 200
+    f = 400.0
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    x, y = (u - W / 2) / f, -(v - H / 2) / f   # at 1 m, image y points along -world y
+    r = np.hypot(x, y) if round_ else np.maximum(np.abs(x), np.abs(y))
+    z = np.where(r < half - 0.004, 0.005, np.where(r <= half, height, 0.0))
+    T = np.eye(4)
+    T[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]   # looking down
+    T[:3, 3] = [0.0, 0.0, 1.0]
+    return _view(1.0 - z, f, f, W / 2, H / 2, T)
+
+
+def _walls(half: float, height: float, round_: bool) -> np.ndarray:
+    """Points of a container's walls (outside and inside faces, 4 mm apart), rim and floor."""
+    zs = np.linspace(0.005, height, 25)
+    out = []
+    for rr in (half, half - 0.004):
+        if round_:
+            a = np.linspace(0, 2 * math.pi, 120, endpoint=False)
+            ring = np.column_stack([rr * np.cos(a), rr * np.sin(a)])
+        else:
+            s = np.linspace(-rr, rr, 30)
+            ring = np.concatenate([np.column_stack([s, np.full_like(s, c)]) for c in (-rr, rr)]
+                                  + [np.column_stack([np.full_like(s, c), s]) for c in (-rr, rr)])
+        out += [np.column_stack([ring, np.full(len(ring), z)]) for z in zs]
+    g = np.linspace(-half * 0.6, half * 0.6, 8)
+    fx, fy = np.meshgrid(g, g)
+    out.append(np.column_stack([fx.ravel(), fy.ravel(), np.full(fx.size, 0.005)]))
+    return np.concatenate(out)
+
+
+def test_container_fit_takes_a_round_cup_not_a_square_bin():
+    """Synthetic open containers seen from above: a round cup (radius 5 cm, 8 cm tall) is a
+    container; a square bin of the same size is not, although most of its wall points fall in
+    the circle fit's band and its middle is seen empty (the footprint tells them apart)."""
+    import robo_perception as rp
+
+    cup = rparts.container_fit(_walls(0.05, 0.08, True), 0.0, rparts.FreeSpace([_top_view_of_a_bin(0.05, 0.08, True)]))
+    assert cup is not None and abs(cup["radius"] - 0.05) < 0.004 and cup["footprint_fill"] < 0.85, cup
+    P = _walls(0.05, 0.08, False)
+    fs = rparts.FreeSpace([_top_view_of_a_bin(0.05, 0.08, False)])
+    _, _, inl = rparts.trimmed_circle(rp.voxel_downsample(P, 0.003)[0][:, :2], tol=0.12)
+    assert inl.mean() >= 0.6, inl.mean()   # the band alone would take it
+    assert fs.empty(np.array([[0.0, 0.0, 0.064], [0.02, 0.0, 0.072]])).all()   # and its middle is seen empty
+    assert rparts.container_fit(P, 0.0, fs) is None
+
+
+def test_solid_shapes_bowl_and_square_bin_keep_their_fits(tmp_path, _built):
+    """A synthetic scene (written here, rendered by `r2g render` from three views, reconstructed
+    by `r2g reconstruct`): a solid box stays a box, an upright solid cylinder a cylinder, a bowl a
+    bowl; an open square bin is neither a cup nor a disc nor convex parts (cut at the part budget,
+    its parts once closed it with slabs across its inside) but a bin: a floor and four walls whose
+    inside stays empty, with a cavity."""
+    gym = tmp_path / "g"
+    gym.mkdir()
+    urdf = (ROOT / "robots" / "panda" / "panda.urdf").resolve()
+    yaw = math.radians(20)
+
+    def ring(rc: float, h: float) -> list:
+        hw = 1.05 * math.pi * rc / 16
+        ps = [f'{{ shape = "cylinder", size_m = [{rc}, 0.0025], position_m = [0.0, 0.0, 0.0025] }}']
+        for k in range(16):
+            a = 2 * math.pi * k / 16
+            ps.append(f'{{ shape = "box", size_m = [0.002, {hw:.4f}, {h / 2}], position_m = [{rc * math.cos(a):.5f}, '
+                      f'{rc * math.sin(a):.5f}, {h / 2}], quat_wxyz = [{math.cos(a / 2):.6f}, 0.0, 0.0, {math.sin(a / 2):.6f}] }}')
+        return ps
+
+    def square(half: float, h: float) -> list:
+        ps = [f'{{ shape = "box", size_m = [{half}, {half}, 0.0025], position_m = [0.0, 0.0, 0.0025] }}']
+        for x, y, sx, sy in ((half - 0.002, 0, 0.002, half), (-(half - 0.002), 0, 0.002, half),
+                             (0, half - 0.002, half, 0.002), (0, -(half - 0.002), half, 0.002)):
+            ps.append(f'{{ shape = "box", size_m = [{sx}, {sy}, {h / 2}], position_m = [{x}, {y}, {h / 2}] }}')
+        return ps
+
+    (gym / "scene.toml").write_text(f"""name = "synthetic_shapes"
+timestep_s = 0.001
+[robot]
+urdf = {json.dumps(str(urdf))}
+tcp_link = "hand_tcp"
+base_position_m = [0.0, 0.0, 0.0]
+initial_joints_rad = [0.0, -0.7853982, 0.0, -2.3561945, 0.0, 1.5707963, 0.7853982]
+initial_gripper = -1.0
+[table]
+top_center_m = [0.45, 0.0, 0.0]
+size_m = [1.3, 1.2]
+[[objects]]
+name = "block"
+shape = "box"
+size_m = [0.03, 0.02, 0.025]
+position_m = [0.42, -0.16, 0.025]
+quat_wxyz = [{math.cos(yaw / 2):.6f}, 0.0, 0.0, {math.sin(yaw / 2):.6f}]
+rgba = [0.8, 0.2, 0.2, 1.0]
+[[objects]]
+name = "can"
+shape = "cylinder"
+size_m = [0.03, 0.04]
+position_m = [0.58, 0.02, 0.04]
+rgba = [0.2, 0.7, 0.3, 1.0]
+[[objects]]
+name = "bowl"
+position_m = [0.45, 0.18, 0.0005]
+rgba = [0.9, 0.55, 0.15, 1.0]
+parts = [{", ".join(ring(0.056, 0.065))}]
+[[objects]]
+name = "bin"
+position_m = [0.62, -0.17, 0.0005]
+rgba = [0.3, 0.3, 0.9, 1.0]
+parts = [{", ".join(square(0.05, 0.06))}]
+""")
+    frames = ev.render_frames("synthetic_shapes", tmp_path / "frames", 2, gym_dir=gym)
+    out = tmp_path / "out"
+    p = ev.run([R2G, "reconstruct", frames, "--robot", "panda", "--joints", frames / "joints.json", "--out", out,
+                "--rounds", "0"], timeout=300)
+    assert p.returncode == 0, p.stderr
+    rep = json.loads((out / "reconstruction.json").read_text())
+    scene = tomllib.loads((out / "scene.toml").read_text())
+    truth = {"block": [0.42, -0.16], "can": [0.58, 0.02], "bowl": [0.45, 0.18], "bin": [0.62, -0.17]}
+    got = {}
+    for o, s in zip(rep["objects"], scene["objects"]):
+        t = min(truth, key=lambda k: math.dist(truth[k], s["position_m"][:2]))
+        assert math.dist(truth[t], s["position_m"][:2]) < 0.01, (t, s["position_m"])
+        got[t] = (o["kind"], s)
+    assert {k: v[0] for k, v in got.items()} == {"block": "box", "can": "cylinder", "bowl": "bowl", "bin": "bin"}, got
+    b = got["bin"][1]
+    assert len(b["parts"]) == 5 and "cavity_min_m" in b, b
+    # The bin's inside (its middle and near its walls, 1 to 5 cm up) is not closed by any part;
+    # its walls and floor are solid.
+    for x, y in ((0.0, 0.0), (0.04, 0.0), (0.0, -0.04)):
+        for z in (0.01, 0.03, 0.05):
+            assert solid_at(out, b, [0.62 + x, -0.17 + y, z]) == [], f"the bin's inside is closed at {x, y, z}"
+    assert solid_at(out, b, [0.62 + 0.049, -0.17, 0.03]) and solid_at(out, b, [0.62, -0.17, 0.003]), "no wall or floor"
+    assert abs(b["cavity_max_m"][2] - 0.06) < 0.005, b
+
+
+def test_support_columns_end_above_a_gap_a_view_saw_through():
+    """Synthetic side view (camera 1 m in front, looking along +y): something in front hides the
+    column under a resting object except a slit 2-3 cm above the table, where the camera sees
+    through to a wall behind. The column under the object ends above that slit: the hidden
+    stretch below it (not seen empty itself) is not kept, since it cannot hold the object up."""
+    W = H = 200
+    f = 400.0
+    d = np.full((H, W), 0.95)       # the occluder in front (y = -0.05)
+    d[103:110, :] = 1.1             # the slit: the wall behind (y = 0.1) is seen
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    T[:3, 3] = [0.0, -1.0, 0.04]
+    fs = rparts.FreeSpace([_view(d, f, f, W / 2, H / 2, T)])
+    S = np.array([[0.001, 0.001, 0.08]])
+    C = rparts.support_columns(S, fs, 0.0, np.array([-0.05, -0.05]), np.array([0.05, 0.05]))
+    assert len(C) >= 10 and abs(C[:, 2].max() - 0.076) < 1e-9, C
+    assert C[:, 2].min() > 0.028, C[:, 2]
+    # Below the slit the column is not seen empty: only the cut leaves it out.
+    below = np.array([[0.001, 0.001, z] for z in (0.004, 0.008, 0.012)])
+    assert not fs.empty(below).any()
+    assert fs.empty(np.array([[0.001, 0.001, 0.024]])).all()
