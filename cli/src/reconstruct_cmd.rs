@@ -81,7 +81,8 @@ shape represents it best for grasping and physics and what it is made of. Shapes
 is fitted again as that shape, whatever the frames show): box, cylinder (upright), sphere, bowl (an open round \
 container) or mesh (one convex hull of its points, which closes every hole and hollow). Shapes only the \
 frames can give, which you may name to keep a fit that has them: disc (a flat round object standing on its \
-edge), container (an open round body with its floor, walls and whatever sticks out, such as a mug's handle) \
+edge), container (an open round or rectangular body, such as a cup or a bin, with its floor, walls and \
+whatever sticks out, such as a mug's handle) \
 and parts (pieces cut wherever a camera saw through the object, such as a rack's slots or a hook's gap). \
 Leave the shape out to keep the fit. A material, from the list given with the objects, sets the object's mass \
 and friction. Use only the ids you were given: never add an object, never \
