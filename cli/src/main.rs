@@ -872,9 +872,11 @@ fn main() {
             o.seed = seed;
             o.jobs = jobs;
             if let Some(backend) = fleet::Backend::from_args(fleet.ray.as_deref(), fleet.workers) {
-                // Each candidate a job; as many in flight as workers were asked for (Ray: the
-                // cluster's own cap).
-                o.jobs = fleet.workers.unwrap_or(jobs.max(4));
+                // Each candidate a job; as many in flight as workers were asked for. On Ray
+                // without --workers, a whole round at once: one driver submits every candidate
+                // of the round as a task, and the cluster's `r2g_gym` slots decide how many run.
+                let ray = matches!(backend, fleet::Backend::Ray { .. });
+                o.jobs = fleet.workers.unwrap_or(if ray { candidates.max(jobs).max(4) } else { jobs.max(4) });
                 o.validator = fleet_validator(backend);
             }
             o.shrink_tries = shrink_tries;
