@@ -97,19 +97,24 @@ class Node:
         self.logs: list[Path] = []
         # A private mount namespace entered in the node's network namespace: tmpfs on /dev/shm
         # and /tmp, then the shared folder bound back at its own path (through an fd opened
-        # before /tmp was covered: the kernel follows /proc/self/fd/N to the real folder).
+        # before /tmp was covered: the kernel follows /proc/self/fd/N to the real folder), and
+        # the checkout too when it lies under /tmp (a clone in /tmp: every machine of a real
+        # cluster has its own checkout at the same path; here they share the one).
+        keep = [str(shared)] + ([str(ROOT)] if Path("/tmp") in ROOT.parents else [])
         holder = f"""
 import ctypes, os, signal, sys
 libc = ctypes.CDLL(None, use_errno=True)
 def mount(src, dst, fs, flags, data):
     if libc.mount(src.encode(), dst.encode(), fs.encode() if fs else None, flags, data.encode() if data else None):
         raise OSError(ctypes.get_errno(), f"mount {{dst}}")
-fd = os.open({str(shared)!r}, os.O_RDONLY | os.O_DIRECTORY)
+keep = {keep!r}
+fds = [os.open(k, os.O_RDONLY | os.O_DIRECTORY) for k in keep]
 mount("r2gshm", "/dev/shm", "tmpfs", 0, "size={SHM_MB}m,mode=1777")
 mount("r2gtmp", "/tmp", "tmpfs", 0, "mode=1777")
-os.makedirs({str(shared)!r})
-mount(f"/proc/self/fd/{{fd}}", {str(shared)!r}, None, 4096, None)  # MS_BIND
-os.close(fd)
+for k, fd in zip(keep, fds):
+    os.makedirs(k, exist_ok=True)
+    mount(f"/proc/self/fd/{{fd}}", k, None, 4096, None)  # MS_BIND
+    os.close(fd)
 print("up", flush=True)
 signal.signal(signal.SIGTERM, lambda *a: sys.exit(0))
 while True:
