@@ -876,7 +876,8 @@ fn main() {
                 // without --workers, a whole round at once: one driver submits every candidate
                 // of the round as a task, and the cluster's `r2g_gym` slots decide how many run.
                 let ray = matches!(backend, fleet::Backend::Ray { .. });
-                o.jobs = fleet.workers.unwrap_or(if ray { candidates.max(jobs).max(4) } else { jobs.max(4) });
+                // At most 64 threads: each also builds its candidate here (an IK re-solve).
+                o.jobs = fleet.workers.unwrap_or(if ray { candidates.max(jobs).clamp(4, 64) } else { jobs.max(4) });
                 o.validator = fleet_validator(backend);
             }
             o.shrink_tries = shrink_tries;

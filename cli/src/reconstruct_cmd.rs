@@ -61,8 +61,10 @@ pub struct ReconstructArgs {
     /// Simulated seconds of gravity settling before each render.
     #[arg(long, default_value_t = 1.0)]
     pub settle_s: f64,
-    /// Optional: ask a model for each fitted object's name and primitive (box, cylinder, sphere,
-    /// bowl, mesh), sending the source images and the fitted objects as text. An endpoint TOML
+    /// Optional: ask a model for each fitted object's name, optionally a shape (box, cylinder,
+    /// sphere, bowl or mesh imposed; disc, container or parts kept only where the frames gave
+    /// them) and a material (mass and friction), sending the source images and the fitted
+    /// objects as text. An endpoint TOML
     /// file (agent-host/endpoints/), "record:<toml>", "replay:<cassette.jsonl>" or
     /// "scripted:<answers.json>" (the scripted server on loopback: mechanics only). Off by
     /// default: without it, names and shapes come from the frames alone.
@@ -81,11 +83,12 @@ shape represents it best for grasping and physics and what it is made of. Shapes
 is fitted again as that shape, whatever the frames show): box, cylinder (upright), sphere, bowl (an open round \
 container) or mesh (one convex hull of its points, which closes every hole and hollow). Shapes only the \
 frames can give, which you may name to keep a fit that has them: disc (a flat round object standing on its \
-edge), container (an open round or rectangular body, such as a cup or a bin, with its floor, walls and \
-whatever sticks out, such as a mug's handle) \
-and parts (pieces cut wherever a camera saw through the object, such as a rack's slots or a hook's gap). \
-Leave the shape out to keep the fit. A material, from the list given with the objects, sets the object's mass \
-and friction. Use only the ids you were given: never add an object, never \
+edge), container (an open round body with its floor, walls and whatever sticks out, such as a mug's \
+handle, or an open rectangular bin, kept as its floor and four walls) and parts (pieces cut wherever a camera saw through the object, such as a rack's slots or a hook's gap). \
+Leave the shape out to keep the fit. A material, from the list given with the objects, sets the friction and \
+the mass: its density times the volume of the fitted shape, which is solid except for bowls, containers and \
+parts, within 20 g to 2 kg (static furniture keeps no mass). Leave the material out for a hollow object fitted \
+as a solid shape, such as a can or a closed carton: it would come out far too heavy. Use only the ids you were given: never add an object, never \
 merge or split objects. Answer with strict JSON only, no prose and no code fence: {\"objects\": [{\"id\": \
 \"o1\", \"name\": \"lower_case_name\", \"primitive\": \"box\", \"material\": \"wood\"}]}, where \
 primitive and material may be left out. Names are short lower-case identifiers (letters, digits, \

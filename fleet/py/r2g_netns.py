@@ -100,7 +100,8 @@ class Node:
         # before /tmp was covered: the kernel follows /proc/self/fd/N to the real folder), and
         # the checkout too when it lies under /tmp (a clone in /tmp: every machine of a real
         # cluster has its own checkout at the same path; here they share the one).
-        keep = [str(shared)] + ([str(ROOT)] if Path("/tmp") in ROOT.parents else [])
+        # Outer folders first, so binding one never covers another's bind.
+        keep = sorted([str(shared)] + ([str(ROOT)] if Path("/tmp") in ROOT.parents else []), key=len)
         holder = f"""
 import ctypes, os, signal, sys
 libc = ctypes.CDLL(None, use_errno=True)

@@ -664,8 +664,10 @@ MATERIALS = {
     "fruit": (950.0, 0.6),
 }
 """The model's optional `material`: sets the object's mass (density x fitted volume, within
-MASS_RANGE_KG) and friction. In MuJoCo a contact takes the larger friction of its two geoms,
-and the table and fingers have 0.8 and 1.2, so a friction below those changes little."""
+MASS_RANGE_KG; not for a static object, whose mass does nothing) and friction. Without one an
+object has the simulator's default friction, 1.0. A MuJoCo contact takes the larger friction of
+its two geoms (the table 0.8, the fingers 1.2), so a material's friction shows between objects
+and against the table, and hardly against the fingers."""
 MASS_RANGE_KG = (0.02, 2.0)
 NAME_CHARS = set("abcdefghijklmnopqrstuvwxyz0123456789_")
 
@@ -710,7 +712,7 @@ def read_model_answer(text: str, n: int) -> dict:
             c["primitive" if prim in PRIMITIVES else "keep"] = prim
         mat = e.get("material")
         if mat is not None:
-            if mat not in MATERIALS:
+            if not isinstance(mat, str) or mat not in MATERIALS:
                 raise FramesError(f"the model's answer: object {oid}: material {mat!r} is not one of "
                                   f"{', '.join(MATERIALS)}")
             c["material"] = mat
@@ -742,7 +744,8 @@ def apply_model_physics(choices: dict, objects: list, warn: list) -> None:
         if c.get("material"):
             density, friction = MATERIALS[c["material"]]
             vol = float(o["_fit"]["volume_m3"])
-            o["mass_kg"] = r(min(MASS_RANGE_KG[1], max(MASS_RANGE_KG[0], density * vol)), 4)
+            if o.get("free") is not False:
+                o["mass_kg"] = r(min(MASS_RANGE_KG[1], max(MASS_RANGE_KG[0], density * vol)), 4)
             o["friction"] = friction
             o["_fit"]["material"] = {"name": c["material"], "density_kg_m3": density, "friction": friction,
                                      "chosen_by": "model"}

@@ -243,6 +243,7 @@ def test_model_materials_and_kept_shapes(frames, tmp_path):
     ({"objects": [{"id": "o7", "name": "ghost", "primitive": "box"}]}, "names object id 'o7', which the reconstruction"),
     ({"objects": [{"id": "o1", "primitive": "cone"}]}, "primitive 'cone' is not one of box, cylinder, sphere, bowl"),
     ({"objects": [{"id": "o1", "material": "unobtainium"}]}, "material 'unobtainium' is not one of wood, ceramic"),
+    ({"objects": [{"id": "o1", "material": ["wood"]}]}, "material ['wood'] is not one of wood, ceramic"),
     ("The block is red.", "the model's answer is not JSON"),
     ({"objects": [{"id": "o1", "name": "Big Block"}]}, "name 'Big Block' is not a lower-case identifier"),
 ])
