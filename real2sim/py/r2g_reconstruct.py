@@ -543,17 +543,7 @@ def hull_mesh(P: np.ndarray, plane: Any, bottom: float, centre2: np.ndarray) -> 
     Q = rp.voxel_downsample(Q, 0.003)[0] if len(Q) > 4000 else Q
     origin = np.array([centre2[0], centre2[1], base_z])
     hull = ConvexHull(Q - origin)
-    used = np.unique(hull.simplices)
-    remap = {int(v): i for i, v in enumerate(used)}
-    V = (Q - origin)[used]
-    faces = []
-    for s, eq in zip(hull.simplices, hull.equations):
-        a, b, c = (remap[int(i)] for i in s)
-        n = np.cross(V[b] - V[a], V[c] - V[a])
-        if np.dot(n, eq[:3]) < 0:
-            b, c = c, b
-        faces.append((a, b, c))
-    spec = {"shape": "mesh", "_mesh": {"vertices": V.tolist(), "faces": faces},
+    spec = {"shape": "mesh", "_mesh": rparts.mesh_of(hull, np.zeros(3)),
             "position_m": [r(origin[0]), r(origin[1]), r(origin[2] + LIFT_M)]}
     return spec, float(hull.volume)
 
