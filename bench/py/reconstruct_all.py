@@ -1,8 +1,9 @@
 """Every shipped gym reconstructed from its own frames (synthetic: rendered by `r2g render` from
-the gym's agentview and two extra viewpoints), compared with its scene.toml and validated with
-its demonstration. Prints a table and, as the last line, one JSON object.
+the gym's agentview and four extra viewpoints, two beside the table and two looking down),
+compared with its scene.toml and validated with its demonstration. Prints a table and, as the
+last line, one JSON object.
 
-    .venv/bin/python bench/py/reconstruct_all.py [--gyms a,b] [--extra-views 2] [--rounds 2]
+    .venv/bin/python bench/py/reconstruct_all.py [--gyms a,b] [--extra-views 4] [--rounds 2]
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ import r2g_reconstruct_eval as ev  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--gyms", default="")
-    ap.add_argument("--extra-views", type=int, default=2)
+    ap.add_argument("--extra-views", type=int, default=len(ev.EXTRA_VIEWS))
     ap.add_argument("--rounds", type=int, default=2)
     a = ap.parse_args()
     gyms = [g for g in a.gyms.split(",") if g] or sorted(p.parent.name for p in (ROOT / "gyms").glob("*/scene.toml"))

@@ -196,6 +196,10 @@ def polygon_area(p: np.ndarray) -> float:
 # The robot's pixels
 # --------------------------------------------------------------------------------------------
 
+# ipc_schema::MAX_CAMERAS: the cameras a scene may name (one shared-memory image slot each).
+SCENE_CAMERAS = 4
+
+
 def cameras_json(frames: list, path: Path) -> None:
     """The frames' cameras as a BOP scene_camera.json with the image size beside them, the form
     `r2g render --cameras` takes."""
@@ -292,14 +296,16 @@ def robot_pixels(frames: list, urdf: str, r2g: str, work: Path, tcp_link: str = 
 # --------------------------------------------------------------------------------------------
 
 def fit_object(o: Any, plane: Any, others: dict, force: Optional[str] = None,
-               fs: Optional["rparts.FreeSpace"] = None, foreign: Optional[np.ndarray] = None) -> dict:
+               fs: Optional["rparts.FreeSpace"] = None, foreign: Optional[np.ndarray] = None,
+               solid: Optional[np.ndarray] = None) -> dict:
     """One segmented object -> an object spec (dict), with the fit's evidence under "_fit".
     `force` (one of PRIMITIVES) overrides the shape the evidence picks (the model's choice).
     `fs` (the space the source views saw through): with it, an object the footprint would make
     a box or a hull is first tried as a disc standing on edge and as an open round body with
     attachments (a mug), and a box or hull that holds space a view saw empty is decomposed into
     convex parts (r2g_reconstruct_parts); `foreign` (the other objects' points) counts as space
-    the object cannot hold too."""
+    the object cannot hold too, and `solid` (samples filling the other objects' fitted solids)
+    as space no part may hold at all."""
     P = o.points
     h = plane.distance(P)
     xy = P[:, :2]
@@ -332,7 +338,7 @@ def fit_object(o: Any, plane: Any, others: dict, force: Optional[str] = None,
         shape = "box"
     special = None
     if force is None and fs is not None and shape in ("box", "mesh"):
-        special = _free_space_fit(o, plane, bottom, centre2, fs, foreign, evidence)
+        special = _free_space_fit(o, plane, bottom, centre2, fs, foreign, evidence, solid)
         if special is not None:
             shape = special[0]
     if force is not None:
@@ -398,6 +404,44 @@ def solid_samples(spec: dict, step: float = 0.003, clearance: float = SOLID_CLEA
     return L @ Rm.T + np.array(spec["position_m"])
 
 
+def solid_contains(spec: dict, X: np.ndarray, clearance: float = SOLID_CLEARANCE_M) -> np.ndarray:
+    """Which world points lie inside a single-shape fit (box, cylinder or disc, sphere) grown by
+    `clearance`; none for compounds and meshes."""
+    shape = spec.get("shape")
+    if shape not in ("box", "cylinder", "sphere") or "parts" in spec or not len(X):
+        return np.zeros(len(X), dtype=bool)
+    w, x, y, z = spec.get("quat_wxyz", [1.0, 0.0, 0.0, 0.0])
+    Rm = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    L = (X - np.array(spec["position_m"])) @ Rm
+    s = [v + clearance for v in spec["size_m"]]
+    if shape == "box":
+        return (np.abs(L) <= np.array(s[:3])).all(1)
+    if shape == "cylinder":
+        return (np.hypot(L[:, 0], L[:, 1]) <= s[0]) & (np.abs(L[:, 2]) <= s[1])
+    return np.linalg.norm(L, axis=1) <= s[0]
+
+
+def cradle_parts(columns: list, spec: dict, solid: np.ndarray) -> list:
+    """Support columns under a resting object -> box parts of the compound `spec` (relative to
+    its origin), each lowered below any of `solid` (the other objects' grown solids) it would
+    reach into."""
+    origin = np.array(spec["position_m"]) - np.array([0.0, 0.0, LIFT_M])
+    out = []
+    for c, half in rparts.cradle_boxes(columns):
+        lo, hi = c - half, c + half
+        S = solid[((solid >= lo) & (solid <= hi)).all(1)] if len(solid) else solid
+        if len(S):
+            hi[2] = float(S[:, 2].min()) - 0.001
+        if hi[2] - lo[2] < 0.001:
+            continue
+        c, half = (lo + hi) / 2, (hi - lo) / 2
+        out.append({"shape": "box", "size_m": [r(float(v), 5) for v in half],
+                    "position_m": [r(float(v), 5) for v in c - origin]})
+    return out
+
+
 def bowl_parts(c: np.ndarray, radius: float, height: float, z_bottom: float) -> tuple[dict, float]:
     """A round hollow object as a compound: a floor disc and 16 wall boxes on a circle, origin at
     the centre of its underside (as the shipped bowls are written)."""
@@ -434,7 +478,8 @@ def bin_parts(axes: np.ndarray, half: np.ndarray, height: float, c: np.ndarray, 
 
 
 def _free_space_fit(o: Any, plane: Any, bottom: float, centre2: np.ndarray, fs: "rparts.FreeSpace",
-                    foreign: Optional[np.ndarray], evidence: dict) -> Optional[tuple[str, dict, float]]:
+                    foreign: Optional[np.ndarray], evidence: dict,
+                    solid: Optional[np.ndarray] = None) -> Optional[tuple[str, dict, float]]:
     """For an object the footprint makes a box or a hull: (shape, spec, volume) of a better fit
     that the frames support, or None to keep the box or hull. In order: a disc standing on edge
     (a cylinder about its horizontal normal); an open round body (a cup's walls and floor, as
@@ -459,9 +504,9 @@ def _free_space_fit(o: Any, plane: Any, bottom: float, centre2: np.ndarray, fs: 
         extra: list = []
         cuts = 0
         if len(cont["rest"]) >= rparts.MIN_PART_POINTS:
-            dec = rparts.decompose(cont["rest"], fs, foreign)
+            dec = rparts.decompose(cont["rest"], fs, foreign, solid=solid)
             keep = [Q for Q in dec["parts"] if len(Q) >= rparts.MIN_PART_POINTS]
-            extra, v2 = rparts.part_specs(keep, origin)
+            extra, v2 = rparts.part_specs(keep, origin, solid)
             volume += v2
             cuts = dec["cuts"]
         spec["parts"] += extra
@@ -495,16 +540,21 @@ def _free_space_fit(o: Any, plane: Any, bottom: float, centre2: np.ndarray, fs: 
     E, cell = rparts.not_ours(h, fs, foreign)
     seen = float(len(E) * cell)
     evidence["hull_seen_empty_cm3"] = r(seen * 1e6, 2)
-    if seen < 4 * rparts.EMPTY_TOL_M3 and seen < 0.03 * h.volume:
+    in_solid = int(rparts.inside(h, solid).sum()) if solid is not None and len(solid) else 0
+    if in_solid:
+        evidence["hull_other_solid_samples"] = in_solid
+    if seen < 4 * rparts.EMPTY_TOL_M3 and seen < 0.03 * h.volume and not in_solid:
         return None
-    dec = rparts.decompose(Q, fs, foreign)
+    dec = rparts.decompose(Q, fs, foreign, solid=solid)
+    if dec.get("solid_samples_left"):
+        evidence["other_solid_samples_left"] = dec["solid_samples_left"]
     keep = [X for X in dec["parts"] if len(X) >= rparts.MIN_PART_POINTS]
     if not keep:
         evidence["not_decomposed"] = (f"every part of the cut hull has under {rparts.MIN_PART_POINTS} points: "
                                       "kept whole")
         return None
     origin = np.array([centre2[0], centre2[1], base_z])
-    parts, volume = rparts.part_specs(keep, origin)
+    parts, volume = rparts.part_specs(keep, origin, solid)
     spec = {"position_m": [r(origin[0]), r(origin[1]), r(origin[2] + LIFT_M)], "parts": parts}
     # Its cavity: the box spanning the space seen empty inside the first hull (between the
     # parts: a rack's slots, the room under a peg), from the lowest such point to the top. An
@@ -909,20 +959,33 @@ def cmd_fit(a: argparse.Namespace) -> None:
         extra = [S for S in extra if len(S)]
         if not extra:
             continue
-        others_pts = [sparse[j] for j in range(len(clusters)) if j != i] + extra
+        others_pts = [sparse[j] for j in range(len(clusters)) if j != i]
         o = clusters[i]
         # What rests on it and is fitted as a solid: the unseen space under it is this
         # object's (a holder's hidden chocks under the plate standing in it).
         held = [j for j in range(len(clusters)) if j != i and clusters[j].support == o.id and len(solids.get(j, []))]
         base_z = plane_z(plane, *o.points[:, :2].mean(0)) + max(0.0, float(o.bottom))
-        under = [rparts.support_columns(solid_samples(fitted[j], clearance=0.0), free, base_z, lo, hi) for j in held]
-        under = [U for U in under if len(U)]
-        if under:
-            o = dataclasses.replace(o, points=np.concatenate([o.points] + under))
-        spec = fit_object(o, plane, tops, fs=free, foreign=np.concatenate(others_pts))
+        under = [c for j in held
+                 for c in rparts.support_columns(solid_samples(fitted[j], clearance=0.0), free, base_z, lo, hi)]
+        solid = np.concatenate(extra)
+        # Its points inside another object's fitted solid are that object's (the shaded lower
+        # rim of a plate standing in its holder, taken for the holder's colour).
+        inner = np.zeros(len(o.points), dtype=bool)
+        for j in fitted:
+            if j != i:
+                inner |= solid_contains(fitted[j], o.points)
+        if inner.any() and (~inner).sum() >= rparts.MIN_PART_POINTS:
+            o = dataclasses.replace(o, points=o.points[~inner])
+        spec = fit_object(o, plane, tops, fs=free, foreign=np.concatenate(others_pts) if others_pts else None,
+                          solid=solid)
         spec["_fit"]["others_solids_counted"] = True
-        if under:
+        if inner.any():
+            spec["_fit"]["points_in_other_solids_dropped"] = int(inner.sum())
+        if under and "parts" in spec:
+            boxes = cradle_parts(under, spec, solid)
+            spec["parts"] += boxes
             spec["_fit"]["support_columns_under"] = [clusters[j].id for j in held]
+            spec["_fit"]["cradle_boxes"] = len(boxes)
         tops[o.id] = spec["_top"]
         fitted[i] = spec
     objects = []
@@ -1005,9 +1068,14 @@ def cmd_fit(a: argparse.Namespace) -> None:
     table = {"top_center_m": [r(tc[0]), r(tc[1]), r(plane_z(plane, *tc))],
              "size_m": [r(hi[0] - lo[0]), r(hi[1] - lo[1])],
              "rgba": [r(float(v), 3) for v in np.median(np.concatenate(cols), axis=0) / 255.0] + [1.0]}
-    # Cameras.
+    # Cameras: the scene holds at most SCENE_CAMERAS (the runtime's image slots); the gate and
+    # `r2g compare --frames` use every source camera from the frames themselves.
     cameras = []
-    for f in frames:
+    if len(frames) > SCENE_CAMERAS:
+        warn.append(f"{len(frames)} source cameras; the scene keeps the first {SCENE_CAMERAS} "
+                    f"(images {', '.join(str(f.id) for f in frames[:SCENE_CAMERAS])}); every view is still "
+                    "used for the fit and the gate")
+    for f in frames[:SCENE_CAMERAS]:
         T = f.base_from_camera
         pos = T[:3, 3]
         cameras.append({"name": f"cam_{f.id}", "position_m": [r(v) for v in pos],

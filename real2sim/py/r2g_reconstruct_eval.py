@@ -44,13 +44,18 @@ def look_at_entry(pos: list, look: list, fovy_deg: float, width: int = 640, heig
 
 
 EXTRA_VIEWS = [
-    # beside the table on the robot's left and right, looking down at the work area
+    # beside the table on the robot's left and right, looking down at the work area (a camera
+    # there sees across a dish rack's slots, not into them)
     {"pos": [0.55, 0.85, 0.75], "look": [0.5, 0.0, 0.03], "fovy": 50.0},
     {"pos": [0.55, -0.85, 0.75], "look": [0.5, 0.0, 0.03], "fovy": 50.0},
+    # straight down over the left and right halves of the work area (into open tops and slots:
+    # the dish rack's cross bars show only from above)
+    {"pos": [0.5, 0.25, 1.3], "look": [0.5, 0.25, 0.0], "fovy": 50.0, "up": [1.0, 0.0, 0.0]},
+    {"pos": [0.5, -0.25, 1.3], "look": [0.5, -0.25, 0.0], "fovy": 50.0, "up": [1.0, 0.0, 0.0]},
 ]
 
 
-def cameras_for(gym_dir: Path, extra: int = 2) -> dict:
+def cameras_for(gym_dir: Path, extra: int = len(EXTRA_VIEWS)) -> dict:
     """The gym's agentview plus `extra` of EXTRA_VIEWS, as a scene_camera.json document."""
     scene = tomllib.loads((gym_dir / "scene.toml").read_text())
     av = next((c for c in scene.get("cameras", []) if c["name"] == "agentview"),
@@ -58,7 +63,7 @@ def cameras_for(gym_dir: Path, extra: int = 2) -> dict:
     doc = {"0": look_at_entry(av["position_m"], av["look_at_m"], av.get("fovy_deg", 45.0),
                               av.get("width", 640), av.get("height", 480))}
     for i, v in enumerate(EXTRA_VIEWS[:extra]):
-        doc[str(i + 1)] = look_at_entry(v["pos"], v["look"], v["fovy"])
+        doc[str(i + 1)] = look_at_entry(v["pos"], v["look"], v["fovy"], up=tuple(v.get("up", (0.0, 0.0, 1.0))))
     return doc
 
 
@@ -92,7 +97,7 @@ def moved_copy(gym: str, to: Path, obj: str, dxy: tuple) -> Path:
     return to
 
 
-def render_frames(gym: str, out: Path, extra: int = 2, gym_dir: Optional[Path] = None) -> Path:
+def render_frames(gym: str, out: Path, extra: int = len(EXTRA_VIEWS), gym_dir: Optional[Path] = None) -> Path:
     """`gym` (a shipped gym's name, or any gym folder given as gym_dir) rendered from its
     agentview and `extra` more viewpoints into `out` (BOP layout)."""
     gym_dir = gym_dir or ROOT / "gyms" / gym
@@ -309,7 +314,7 @@ def _toml(v: Any) -> str:
     raise ValueError(type(v))
 
 
-def evaluate(gym: str, work: Path, extra: int = 2, validate: bool = True, rounds: int = 2) -> dict:
+def evaluate(gym: str, work: Path, extra: int = len(EXTRA_VIEWS), validate: bool = True, rounds: int = 2) -> dict:
     """Render, reconstruct, compare with the truth, validate. Returns the figures."""
     gym_dir = ROOT / "gyms" / gym
     work.mkdir(parents=True, exist_ok=True)

@@ -200,26 +200,39 @@ def not_ours(hull: Any, fs: FreeSpace, foreign: Optional[np.ndarray] = None) -> 
     return E, cell
 
 
-def decompose(P: np.ndarray, fs: FreeSpace, foreign: Optional[np.ndarray] = None, max_parts: int = MAX_PARTS) -> dict:
+def decompose(P: np.ndarray, fs: FreeSpace, foreign: Optional[np.ndarray] = None, max_parts: int = MAX_PARTS,
+              solid: Optional[np.ndarray] = None) -> dict:
     """Convex parts of the points `P` (world, with what is under them already added) whose hulls
     hold no space a view saw empty and no other object's points (`foreign`), within the
-    tolerances. Returns {"parts": [point arrays], "empty": [the not-ours sample points of the
-    first hull], "cell_m3": its cell volume, "cuts": how many cuts were made, "residual_m3":
-    not-ours volume left in the accepted parts}."""
+    tolerances, and none of `solid` (samples filling other objects' fitted solids, grown by a
+    clearance): one such sample weighs as much as the whole tolerance, because a part reaching
+    into a solid starts the simulation interpenetrated and the contact pushes the other object
+    away (a holder's cradle under a plate's curved rim: the hull of columns under the arc cuts
+    into the rim until the cradle is sliced finely enough). Returns {"parts": [point arrays],
+    "empty": [the not-ours sample points of the first hull], "cell_m3": its cell volume, "cuts":
+    how many cuts were made, "residual_m3": not-ours volume left in the accepted parts,
+    "solid_samples_left": solid samples still inside an accepted part}."""
     root = hull_of(P)
     if root is None:
-        return {"parts": [P], "empty": np.zeros((0, 3)), "cell_m3": 0.0, "cuts": 0, "residual_m3": 0.0}
+        return {"parts": [P], "empty": np.zeros((0, 3)), "cell_m3": 0.0, "cuts": 0, "residual_m3": 0.0,
+                "solid_samples_left": 0}
     E_all, cell = not_ours(root, fs, foreign)
+    S_all = solid[inside(root, solid)] if solid is not None and len(solid) else np.zeros((0, 3))
+    if len(S_all):
+        E_all = np.concatenate([E_all, S_all])
+    heavy = max(cell, EMPTY_TOL_M3)
     done: list = []
     cuts = 0
     residual = 0.0
+    solid_left = 0
 
-    def seen_empty(Q: np.ndarray, E: np.ndarray) -> tuple[float, float, Any]:
+    def seen_empty(Q: np.ndarray, E: np.ndarray, S: np.ndarray = S_all) -> tuple[float, float, Any]:
         h = hull_of(Q)
         if h is None:
             return 0.0, 0.0, None
         n = int(inside(h, E).sum()) if len(E) else 0
-        return n * cell, float(h.volume), h
+        m = int(inside(h, S).sum()) if len(S) else 0
+        return n * cell + m * (heavy - cell), float(h.volume), h
 
     # The part holding the most seen-empty space is cut first, so the part budget goes where the
     # hulls are most wrong.
@@ -231,6 +244,7 @@ def decompose(P: np.ndarray, fs: FreeSpace, foreign: Optional[np.ndarray] = None
         if h is None or e < EMPTY_TOL_M3 or small or len(done) + len(todo) + 2 > max_parts:
             done.append(Q)
             residual += e
+            solid_left += int(inside(h, S_all).sum()) if h is not None and len(S_all) else 0
             continue
         best = None
         # Cuts at quantiles of the points, and through the seen-empty space inside the hull
@@ -238,6 +252,7 @@ def decompose(P: np.ndarray, fs: FreeSpace, foreign: Optional[np.ndarray] = None
         # cut is chosen on an even subsample of at most SUBSAMPLE points (for speed), then
         # applied to all of them.
         Eh = E_all[inside(h, E_all)] if len(E_all) else E_all
+        Sh = S_all[inside(h, S_all)] if len(S_all) else S_all
         Qs = Q[::max(1, len(Q) // SUBSAMPLE)]
         stride = max(1, len(Eh) // (2 * SUBSAMPLE))
         Eh = Eh[::stride]
@@ -250,23 +265,26 @@ def decompose(P: np.ndarray, fs: FreeSpace, foreign: Optional[np.ndarray] = None
                 A, B = Qs[s <= cut], Qs[s > cut]
                 if len(A) < MIN_PART_POINTS // 2 or len(B) < MIN_PART_POINTS // 2:
                     continue
-                sa, sb = seen_empty(A, Eh), seen_empty(B, Eh)
+                sa, sb = seen_empty(A, Eh, Sh), seen_empty(B, Eh, Sh)
                 score = ((sa[0] + sb[0]) * stride, sa[1] + sb[1])
                 if best is None or score < best[0]:
                     best = (score, a, cut)
         if best is None or best[0][0] >= e:
             done.append(Q)
             residual += e
+            solid_left += int(inside(h, S_all).sum()) if len(S_all) else 0
             continue
         s = Q @ best[1]
         A, B = Q[s <= best[2]], Q[s > best[2]]
         if len(A) < MIN_PART_POINTS or len(B) < MIN_PART_POINTS:
             done.append(Q)
             residual += e
+            solid_left += int(inside(h, S_all).sum()) if len(S_all) else 0
             continue
         cuts += 1
         todo += [(seen_empty(A, E_all), A), (seen_empty(B, E_all), B)]
-    return {"parts": done, "empty": E_all, "cell_m3": cell, "cuts": cuts, "residual_m3": residual}
+    return {"parts": done, "empty": E_all, "cell_m3": cell, "cuts": cuts, "residual_m3": residual,
+            "solid_samples_left": solid_left}
 
 
 def grounded(P: np.ndarray, fs: FreeSpace, base_z: float, step: float = 0.004, keep_every: int = 5) -> np.ndarray:
@@ -364,15 +382,21 @@ BOX_FILL = 0.75
 """A part whose hull fills this much of its oriented box is written as that box."""
 
 
-def part_specs(parts: list, origin: np.ndarray) -> tuple[list, float]:
+def _in_box(X: np.ndarray, c: np.ndarray, half: np.ndarray, Rm: np.ndarray) -> int:
+    return int((np.abs((X - c) @ Rm) <= half).all(1).sum()) if len(X) else 0
+
+
+def part_specs(parts: list, origin: np.ndarray, solid: Optional[np.ndarray] = None) -> tuple[list, float]:
     """Accepted part point sets -> scene parts relative to `origin` (boxes where they fill their
-    box, else convex meshes carried under "_mesh"), and their total volume."""
+    box and the box reaches into none of `solid`, else convex meshes carried under "_mesh"), and
+    their total volume."""
     out, volume = [], 0.0
     for Q in parts:
         h = hull_of(Q)
         c, half, Rm = box_of(thicken(Q))
         bvol = 8 * float(np.prod(half))
-        if h is None or h.volume >= BOX_FILL * bvol:
+        clear = solid is None or h is None or not _in_box(solid, c, half, Rm)
+        if h is None or (h.volume >= BOX_FILL * bvol and clear):
             out.append({"shape": "box", "size_m": [round(float(v), 5) for v in half],
                         "position_m": [round(float(v), 5) for v in c - origin],
                         "quat_wxyz": [round(float(v), 6) for v in quat_of(Rm)]})
@@ -423,6 +447,9 @@ def container_fit(P: np.ndarray, plane_z: float, fs: FreeSpace) -> Optional[dict
     import robo_perception as rp
 
     S = rp.voxel_downsample(P, 0.003)[0] if len(P) > 400 else P
+    # The walls run the whole height; the floor inside (seen by a camera looking into the open
+    # top) lies in the lowest fifth and is left out of the circle and its count.
+    S = S[S[:, 2] > plane_z + 0.2 * (float(S[:, 2].max()) - plane_z)]
     if len(S) < 60:
         return None
     c, rad, inl = trimmed_circle(S[:, :2], tol=0.12)
@@ -554,16 +581,17 @@ def z_to(n: np.ndarray) -> list:
 
 
 def support_columns(S: np.ndarray, fs: FreeSpace, base_z: float, lo: np.ndarray, hi: np.ndarray,
-                    clearance: float = 0.004, step: float = 0.004, reach: float = 0.015) -> np.ndarray:
-    """Points for what must hold up a resting object no camera sees under: `S` fills the
+                    clearance: float = 0.004, step: float = 0.004, reach: float = 0.015) -> list:
+    """The columns of what must hold up a resting object no camera sees under: `S` fills the
     object's fitted solid; below its underside (less `clearance`), within the supporting
     object's horizontal extent lo..hi, a column down towards `base_z`, cut above its first
-    sample (from the top) that a view saw empty. A
-    plate standing in a holder hides the holder's chocks; these columns give the holder a cradle
-    under the plate's rim instead of nothing."""
+    sample (from the top) that a view saw empty. Returns [(x, y, bottom z, top z)], one per
+    `step` grid cell that keeps a column. A plate standing in a holder hides the holder's
+    chocks; these columns give the holder a cradle under the plate's rim instead of nothing
+    (`cradle_boxes` turns them into parts)."""
     S = S[(S[:, 0] >= lo[0]) & (S[:, 0] <= hi[0]) & (S[:, 1] >= lo[1]) & (S[:, 1] <= hi[1])]
     if not len(S):
-        return np.zeros((0, 3))
+        return []
     cell = np.floor(S[:, :2] / step).astype(np.int64)
     order = np.lexsort((S[:, 2], cell[:, 1], cell[:, 0]))
     cs = cell[order]
@@ -581,7 +609,7 @@ def support_columns(S: np.ndarray, fs: FreeSpace, base_z: float, lo: np.ndarray,
         z = np.arange(top, base_z - 1e-9, -step)
         out.append(np.column_stack([np.full(len(z), p[0]), np.full(len(z), p[1]), z]))
     if not out:
-        return np.zeros((0, 3))
+        return []
     C = np.concatenate(out)
     emp = fs.empty(C)
     # Each column (samples from the top down) ends above its first seen-empty sample: what lies
@@ -591,6 +619,60 @@ def support_columns(S: np.ndarray, fs: FreeSpace, base_z: float, lo: np.ndarray,
         e = emp[k:k + len(col)]
         k += len(col)
         first = int(np.argmax(e)) if e.any() else len(col)
-        keep.append(col[:first])
-    return np.concatenate(keep)
+        bottom = base_z if first == len(col) else float(col[first - 1, 2]) if first else None
+        if bottom is not None and col[0, 2] - bottom > 0.001:
+            keep.append((float(col[0, 0]), float(col[0, 1]), bottom, float(col[0, 2])))
+    return keep
+
+
+def cradle_boxes(columns: list, step: float = 0.004, tol: float = 0.0015, max_boxes: int = 12) -> list:
+    """Support columns [(x, y, bottom, top)] -> a few boxes [(centre, half sizes)] in world
+    axes, each no higher than the lowest column top it covers, so none reaches into the object
+    the columns hold up (the hull of columns under a curved rim would: its chords rise above
+    the arc). Cells of the `step` grid are merged along x where tops and bottoms agree within
+    `tol`, then rows with the same run along y; `tol` doubles until at most `max_boxes` remain."""
+    if not columns:
+        return []
+    cells: dict = {}
+    for x, y, b, t in columns:
+        key = (int(math.floor(x / step)), int(math.floor(y / step)))
+        if key in cells:
+            ob, ot = cells[key]
+            cells[key] = (max(ob, b), min(ot, t))
+        else:
+            cells[key] = (b, t)
+    while True:
+        runs = []  # (ix0, ix1, iy0, iy1, bottom, top)
+        for iy in sorted({k[1] for k in cells}):
+            row = sorted(k[0] for k in cells if k[1] == iy)
+            cur = None
+            for ix in row:
+                b, t = cells[(ix, iy)]
+                if cur and ix == cur[1] + 1 and abs(t - cur[5]) <= tol and abs(b - cur[4]) <= tol:
+                    cur = [cur[0], ix, iy, iy, max(cur[4], b), min(cur[5], t)]
+                else:
+                    if cur:
+                        runs.append(cur)
+                    cur = [ix, ix, iy, iy, b, t]
+            if cur:
+                runs.append(cur)
+        merged: list = []
+        for run in sorted(runs, key=lambda q: (q[0], q[1], q[2])):
+            m = next((q for q in merged if q[0] == run[0] and q[1] == run[1] and q[3] + 1 == run[2]
+                      and abs(q[5] - run[5]) <= tol and abs(q[4] - run[4]) <= tol), None)
+            if m:
+                m[3], m[4], m[5] = run[2], max(m[4], run[4]), min(m[5], run[5])
+            else:
+                merged.append(list(run))
+        if len(merged) <= max_boxes or tol > 0.05:
+            break
+        tol *= 2
+    out = []
+    for ix0, ix1, iy0, iy1, b, t in merged:
+        if t - b < 1e-4:
+            continue
+        lo = np.array([ix0 * step, iy0 * step, b])
+        hi = np.array([(ix1 + 1) * step, (iy1 + 1) * step, t])
+        out.append(((lo + hi) / 2, (hi - lo) / 2))
+    return out
 

@@ -1,5 +1,5 @@
 """`r2g reconstruct` on synthetic frames: shipped gyms rendered by `r2g render` (real MuJoCo, EGL)
-from their agentview and two extra viewpoints, reconstructed, compared with the gym's own
+from their agentview and four extra viewpoints, reconstructed, compared with the gym's own
 scene.toml, and validated with the gym's demonstration (`r2g validate`). Bad input: precise
 errors and no half-written gym. The geometry service is a real HTTP server on loopback that
 answers with the wire format (depth taken from the synthetic frames)."""
@@ -28,10 +28,10 @@ R2G = ROOT / "target" / "release" / "r2g"
 
 @pytest.fixture(scope="module")
 def frames(tmp_path_factory) -> Path:
-    """pick_block_plate rendered from three viewpoints (synthetic)."""
+    """pick_block_plate rendered from three viewpoints (synthetic; the error cases need no more)."""
     if not R2G.is_file():
         pytest.fail(f"{R2G} missing: run `make build` first")
-    return ev.render_frames("pick_block_plate", tmp_path_factory.mktemp("rec") / "frames")
+    return ev.render_frames("pick_block_plate", tmp_path_factory.mktemp("rec") / "frames", 2)
 
 
 @pytest.mark.parametrize("gym", ["pick_block_plate", "push_to_line", "stack_bowls"])
@@ -52,7 +52,12 @@ def test_shipped_gym_reconstructs_and_validates(gym, tmp_path):
     assert res["validate"]["success"], res
     rep = json.loads((tmp_path / gym / "gym" / "reconstruction.json").read_text())
     assert rep["rounds"] and all("per_view" in o for o in rep["rounds"][0]["objects"])
-    assert len(rep["rounds"][0]["objects"][0]["per_view"]) == 3
+    assert len(rep["rounds"][0]["objects"][0]["per_view"]) == 1 + len(ev.EXTRA_VIEWS)
+    # Five source images: the scene names the first four cameras (the runtime's image slots)
+    # and says so; the gate above used all five.
+    cams = tomllib.loads((tmp_path / gym / "gym" / "scene.toml").read_text())["cameras"]
+    assert [c["name"] for c in cams] == ["cam_0", "cam_1", "cam_2", "cam_3"], cams
+    assert any("the scene keeps the first 4" in w for w in rep["warnings"]), rep["warnings"]
 
 
 def run(*args) -> subprocess.CompletedProcess:
