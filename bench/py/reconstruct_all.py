@@ -4,6 +4,7 @@ compared with its scene.toml and validated with its demonstration. Prints a tabl
 last line, one JSON object.
 
     .venv/bin/python bench/py/reconstruct_all.py [--gyms a,b] [--extra-views 4] [--rounds 2]
+        [--depth-noise-mm 0 --depth-noise-rel 0]
 """
 from __future__ import annotations
 
@@ -24,13 +25,17 @@ def main() -> None:
     ap.add_argument("--gyms", default="")
     ap.add_argument("--extra-views", type=int, default=len(ev.EXTRA_VIEWS))
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--depth-noise-mm", type=float, default=0.0,
+                    help="synthetic Gaussian depth noise: standard deviation in mm, plus --depth-noise-rel x depth")
+    ap.add_argument("--depth-noise-rel", type=float, default=0.0)
     a = ap.parse_args()
     gyms = [g for g in a.gyms.split(",") if g] or sorted(p.parent.name for p in (ROOT / "gyms").glob("*/scene.toml"))
     rows = []
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="r2g-reconstruct-bench-") as tmp:
         for g in gyms:
-            rows.append(ev.evaluate(g, Path(tmp) / g, extra=a.extra_views, rounds=a.rounds))
+            rows.append(ev.evaluate(g, Path(tmp) / g, extra=a.extra_views, rounds=a.rounds,
+                                    noise_mm=a.depth_noise_mm, noise_rel=a.depth_noise_rel))
     # IoU columns: "gate IoU" compares the render with the reconstruction's own segmentation of
     # the source (last kept round; "gate IoU0" the first round); "true IoU" compares it with the
     # true masks (mask_visib) of the synthetic frames, objects only.
@@ -45,7 +50,8 @@ def main() -> None:
                          str(r.get("true_iou_mean")),
                          "-" if v is None else ("pass" if v["success"] else "FAIL"), r["seconds"],
                          r.get("error") or r["verdict"]))
-    summary = {"bench": "reconstruct_all", "synthetic": True, "views": 1 + a.extra_views, "gyms": rows,
+    summary = {"bench": "reconstruct_all", "synthetic": True, "views": 1 + a.extra_views,
+               "depth_noise": {"sigma_mm": a.depth_noise_mm, "relative": a.depth_noise_rel}, "gyms": rows,
                "validated": sum(1 for r in rows if (r.get("validate") or {}).get("success")),
                "ok": sum(1 for r in rows if r["verdict"] == "ok"), "seconds": round(time.monotonic() - t0, 1)}
     print(json.dumps(summary))

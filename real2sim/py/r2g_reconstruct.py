@@ -423,12 +423,17 @@ def solid_contains(spec: dict, X: np.ndarray, clearance: float = SOLID_CLEARANCE
     return np.linalg.norm(L, axis=1) <= s[0]
 
 
-def cradle_parts(columns: list, spec: dict, solid: np.ndarray) -> list:
-    """Support columns under a resting object -> box parts of the compound `spec` (relative to
-    its origin), each lowered below any of `solid` (the other objects' grown solids) it would
-    reach into."""
+def cradle_parts(columns: list, spec: dict, solid: np.ndarray) -> tuple[list, float]:
+    """Support columns under a resting object -> box parts of the compound `spec` (in its frame:
+    relative to its origin and turned by its `quat_wxyz`, a bin's yaw), each lowered below any of
+    `solid` (the other objects' grown solids) it would reach into. Returns (parts, volume)."""
     origin = np.array(spec["position_m"]) - np.array([0.0, 0.0, LIFT_M])
-    out = []
+    w, x, y, z = spec.get("quat_wxyz", [1.0, 0.0, 0.0, 0.0])
+    Rm = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    turned = not np.allclose(Rm, np.eye(3))
+    out, volume = [], 0.0
     for c, half in rparts.cradle_boxes(columns):
         lo, hi = c - half, c + half
         S = solid[((solid >= lo) & (solid <= hi)).all(1)] if len(solid) else solid
@@ -437,9 +442,14 @@ def cradle_parts(columns: list, spec: dict, solid: np.ndarray) -> list:
         if hi[2] - lo[2] < 0.001:
             continue
         c, half = (lo + hi) / 2, (hi - lo) / 2
-        out.append({"shape": "box", "size_m": [r(float(v), 5) for v in half],
-                    "position_m": [r(float(v), 5) for v in c - origin]})
-    return out
+        part = {"shape": "box", "size_m": [r(float(v), 5) for v in half],
+                "position_m": [r(float(v), 5) for v in Rm.T @ (c - origin)]}
+        if turned:
+            # World axes in the compound's frame: the inverse of its rotation.
+            part["quat_wxyz"] = [r(w, 6), r(-x, 6), r(-y, 6), r(-z, 6)]
+        out.append(part)
+        volume += 8 * float(np.prod(half))
+    return out, volume
 
 
 def bowl_parts(c: np.ndarray, radius: float, height: float, z_bottom: float) -> tuple[dict, float]:
@@ -974,18 +984,31 @@ def cmd_fit(a: argparse.Namespace) -> None:
         for j in fitted:
             if j != i:
                 inner |= solid_contains(fitted[j], o.points)
-        if inner.any() and (~inner).sum() >= rparts.MIN_PART_POINTS:
+        dropped = bool(inner.any() and (~inner).sum() >= rparts.MIN_PART_POINTS)
+        if dropped:
             o = dataclasses.replace(o, points=o.points[~inner])
         spec = fit_object(o, plane, tops, fs=free, foreign=np.concatenate(others_pts) if others_pts else None,
                           solid=solid)
         spec["_fit"]["others_solids_counted"] = True
-        if inner.any():
+        if dropped:
             spec["_fit"]["points_in_other_solids_dropped"] = int(inner.sum())
         if under and "parts" in spec:
-            boxes = cradle_parts(under, spec, solid)
+            boxes, vol = cradle_parts(under, spec, solid)
             spec["parts"] += boxes
             spec["_fit"]["support_columns_under"] = [clusters[j].id for j in held]
             spec["_fit"]["cradle_boxes"] = len(boxes)
+            if boxes:
+                volume = float(spec["_fit"]["volume_m3"]) + vol
+                spec["_fit"]["volume_m3"] = float(f"{volume:.4g}")
+                spec["mass_kg"] = r(min(MASS_RANGE_KG[1], max(MASS_RANGE_KG[0], DENSITY_KG_M3 * volume)), 4)
+            else:
+                warn.append(f"{o.color_name} object: {len(under)} support columns under what rests on it gave no "
+                            "cradle box (each would reach into the object it holds up)")
+        elif under:
+            spec["_fit"]["support_columns_unused"] = len(under)
+            warn.append(f"{o.color_name} object: fitted as a {spec['_fit']['chosen']}, not parts: the {len(under)} "
+                        "support columns under what rests on it were not added (nothing holds it up where the "
+                        "cameras could not see)")
         tops[o.id] = spec["_top"]
         fitted[i] = spec
     objects = []

@@ -226,25 +226,27 @@ def decompose(P: np.ndarray, fs: FreeSpace, foreign: Optional[np.ndarray] = None
     residual = 0.0
     solid_left = 0
 
-    def seen_empty(Q: np.ndarray, E: np.ndarray, S: np.ndarray = S_all) -> tuple[float, float, Any]:
+    def seen_empty(Q: np.ndarray, E: np.ndarray, S: np.ndarray = S_all) -> tuple[float, float, Any, int]:
+        """(not-ours weight: seen-empty cells + heavy solid samples, hull volume, hull, solid
+        samples inside)."""
         h = hull_of(Q)
         if h is None:
-            return 0.0, 0.0, None
+            return 0.0, 0.0, None, 0
         n = int(inside(h, E).sum()) if len(E) else 0
         m = int(inside(h, S).sum()) if len(S) else 0
-        return n * cell + m * (heavy - cell), float(h.volume), h
+        return n * cell + m * (heavy - cell), float(h.volume), h, m
 
     # The part holding the most seen-empty space is cut first, so the part budget goes where the
     # hulls are most wrong.
     todo = [(seen_empty(P, E_all), P)]
     while todo:
         todo.sort(key=lambda x: -x[0][0])
-        (e, vol, h), Q = todo.pop(0)
+        (e, vol, h, m), Q = todo.pop(0)
         small = len(Q) < 2 * MIN_PART_POINTS
         if h is None or e < EMPTY_TOL_M3 or small or len(done) + len(todo) + 2 > max_parts:
             done.append(Q)
-            residual += e
-            solid_left += int(inside(h, S_all).sum()) if h is not None and len(S_all) else 0
+            residual += e - m * heavy
+            solid_left += m
             continue
         best = None
         # Cuts at quantiles of the points, and through the seen-empty space inside the hull
@@ -271,15 +273,15 @@ def decompose(P: np.ndarray, fs: FreeSpace, foreign: Optional[np.ndarray] = None
                     best = (score, a, cut)
         if best is None or best[0][0] >= e:
             done.append(Q)
-            residual += e
-            solid_left += int(inside(h, S_all).sum()) if len(S_all) else 0
+            residual += e - m * heavy
+            solid_left += m
             continue
         s = Q @ best[1]
         A, B = Q[s <= best[2]], Q[s > best[2]]
         if len(A) < MIN_PART_POINTS or len(B) < MIN_PART_POINTS:
             done.append(Q)
-            residual += e
-            solid_left += int(inside(h, S_all).sum()) if len(S_all) else 0
+            residual += e - m * heavy
+            solid_left += m
             continue
         cuts += 1
         todo += [(seen_empty(A, E_all), A), (seen_empty(B, E_all), B)]
@@ -627,10 +629,14 @@ def support_columns(S: np.ndarray, fs: FreeSpace, base_z: float, lo: np.ndarray,
 
 def cradle_boxes(columns: list, step: float = 0.004, tol: float = 0.0015, max_boxes: int = 12) -> list:
     """Support columns [(x, y, bottom, top)] -> a few boxes [(centre, half sizes)] in world
-    axes, each no higher than the lowest column top it covers, so none reaches into the object
-    the columns hold up (the hull of columns under a curved rim would: its chords rise above
-    the arc). Cells of the `step` grid are merged along x where tops and bottoms agree within
-    `tol`, then rows with the same run along y; `tol` doubles until at most `max_boxes` remain."""
+    axes, each no higher than the lowest column top it covers (the hull of columns under a
+    curved rim would rise above the arc between them, its chords). A box covers its whole grid
+    cells while its top comes from one sample in each, so under a steep stretch of the rim a
+    corner can still reach a fraction of a millimetre above it: the caller lowers the boxes
+    against the object's grown solid (`cradle_parts`). Cells of the `step` grid are merged along
+    x where tops and bottoms agree within `tol` (and the merged box keeps at least 1 mm of
+    height), then rows with the same run along y; `tol` doubles until at most `max_boxes`
+    remain or it passes 5 cm (cells that do not touch always stay apart)."""
     if not columns:
         return []
     cells: dict = {}
@@ -648,7 +654,8 @@ def cradle_boxes(columns: list, step: float = 0.004, tol: float = 0.0015, max_bo
             cur = None
             for ix in row:
                 b, t = cells[(ix, iy)]
-                if cur and ix == cur[1] + 1 and abs(t - cur[5]) <= tol and abs(b - cur[4]) <= tol:
+                if (cur and ix == cur[1] + 1 and abs(t - cur[5]) <= tol and abs(b - cur[4]) <= tol
+                        and max(b, cur[4]) < min(t, cur[5]) - 1e-3):
                     cur = [cur[0], ix, iy, iy, max(cur[4], b), min(cur[5], t)]
                 else:
                     if cur:
@@ -659,7 +666,8 @@ def cradle_boxes(columns: list, step: float = 0.004, tol: float = 0.0015, max_bo
         merged: list = []
         for run in sorted(runs, key=lambda q: (q[0], q[1], q[2])):
             m = next((q for q in merged if q[0] == run[0] and q[1] == run[1] and q[3] + 1 == run[2]
-                      and abs(q[5] - run[5]) <= tol and abs(q[4] - run[4]) <= tol), None)
+                      and abs(q[5] - run[5]) <= tol and abs(q[4] - run[4]) <= tol
+                      and max(q[4], run[4]) < min(q[5], run[5]) - 1e-3), None)
             if m:
                 m[3], m[4], m[5] = run[2], max(m[4], run[4]), min(m[5], run[5])
             else:

@@ -1,5 +1,6 @@
 """`r2g reconstruct` on objects no single primitive fits (synthetic frames: shipped gyms rendered
-by `r2g render` from their agentview, two side views and two views looking down). The free-space decomposition must keep
+by `r2g render` from their agentview, two side views and two views looking down; the scene of
+synthetic shapes from three). The free-space decomposition must keep
 the holes the cameras saw through: the mug's handle hole and the room under the mug rack's
 slanted peg; the mug must keep its open top; a plate standing on edge must come out a disc and
 the dish rack a compound with a cavity, so `inside rack` can be stated."""
@@ -33,9 +34,16 @@ def _built():
 
 def solid_at(gym: Path, obj: dict, world: np.ndarray) -> list[int]:
     """Indices of the object's parts (boxes and convex meshes) holding the world point."""
+    hits = solid_points(gym, obj, np.asarray(world, float)[None, :])
+    return [k for k, n in hits.items() if n]
+
+
+def solid_points(gym: Path, obj: dict, world: np.ndarray) -> dict:
+    """{part index: how many of the world points (N, 3) it holds} over the object's box and
+    convex mesh parts."""
     R0 = ev._quat_mat(obj.get("quat_wxyz", [1, 0, 0, 0]))
-    local = R0.T @ (np.asarray(world, float) - np.array(obj["position_m"]))
-    hits = []
+    local = (world - np.array(obj["position_m"])) @ R0
+    hits = {}
     for k, p in enumerate(obj.get("parts", [])):
         if p["shape"] == "mesh":
             V = np.array([[float(v) for v in ln.split()[1:4]] for ln in (gym / p["mesh"]).read_text().splitlines()
@@ -46,8 +54,7 @@ def solid_at(gym: Path, obj: dict, world: np.ndarray) -> list[int]:
         else:
             continue
         eq = ConvexHull(V).equations
-        if (eq[:, :3] @ local + eq[:, 3] <= 0).all():
-            hits.append(k)
+        hits[k] = int((local @ eq[:, :3].T + eq[:, 3] <= 0).all(1).sum())
     return hits
 
 
@@ -132,6 +139,27 @@ def test_shelf_plate_disc_on_edge_and_rack_with_a_cavity_and_validates(tmp_path,
     fit = {o["name"]: o["fit"] for o in json.loads((gym / "reconstruction.json").read_text())["objects"]}
     assert fit["holder"].get("cradle_boxes", 0) >= 1, fit["holder"]
     assert fit["holder"].get("other_solid_samples_left", 0) == 0, fit["holder"]
+    # No holder part (cut part or cradle box) holds any of the settled plate, sampled every 1 mm
+    # over its lower 4 cm, across its thickness.
+    R = ev._quat_mat(plate["quat_wxyz"])
+    rad, ht = plate["size_m"]
+    u, w = np.meshgrid(np.arange(-rad, rad, 0.001), np.linspace(-ht, ht, 5))
+    L = []
+    for v in np.arange(-rad, -rad + 0.04, 0.001):
+        ok = np.hypot(u, v) <= rad
+        L.append(np.column_stack([u[ok], np.full(int(ok.sum()), v), w[ok]]))
+    # The disc's frame has its faces along local z; the band runs from -rad along whichever of
+    # its local x and y points most nearly up (so -rad is its lowest point).
+    up = max(range(2), key=lambda k: abs(R[2, k]))
+    L = np.concatenate(L)
+    if R[2, up] < 0:
+        L[:, 1] = -L[:, 1]
+    if up == 0:
+        L = L[:, [1, 0, 2]]
+    W = L @ R.T + np.array(plate["position_m"])
+    assert W[:, 2].min() < plate["position_m"][2] - rad + 0.002, "the samples miss the plate's lowest point"
+    held = {k: n for k, n in solid_points(gym, by["holder"], W).items() if n}
+    assert not held, f"holder parts holding plate samples: {held}"
     assert res["validate"]["success"], res
 
 
@@ -381,32 +409,101 @@ def test_support_columns_end_above_a_gap_a_view_saw_through():
 
 
 def test_cradle_under_a_plate_rim_stays_below_the_rim():
-    """A plate (radius 8.5 cm, 1 cm thick) standing on edge, its lowest point 5.5 mm above the
-    table, nothing seen under it: the support columns under its lowest 1.5 cm become at most
-    12 boxes, none reaching above the rim over its whole extent (the hull of the same columns
-    would: its chords rise above the arc), one of them under the lowest point."""
+    """Plates (radius 5, 8.5 and 12 cm, 1 cm thick) standing on edge, their lowest point 5.5 mm
+    above the table, at several offsets to the 4 mm grid, nothing seen under them: the support
+    columns under their lowest 1.5 cm become at most 12 boxes, which `cradle_parts` lowers
+    against the grown solid so that none reaches above the rim over its whole extent; one holds
+    up the lowest point. The convex hull of the same columns reaches into the rim."""
     import r2g_reconstruct as rc
 
-    plate = {"shape": "cylinder", "size_m": [0.085, 0.005], "position_m": [0.5, -0.2, 0.0905],
-             "quat_wxyz": [math.sqrt(0.5), math.sqrt(0.5), 0.0, 0.0]}
-    S = rc.solid_samples(plate, clearance=0.0)
-    fs = rparts.FreeSpace([])
-    cols = rparts.support_columns(S, fs, 0.0, np.array([0.4, -0.25]), np.array([0.6, -0.15]))
+    for radius in (0.05, 0.085, 0.12):
+        for off in (0.0, 0.0013, 0.003):
+            cx, cy, cz = 0.5 + off, -0.2 + off, radius + 0.0055
+            plate = {"shape": "cylinder", "size_m": [radius, 0.005], "position_m": [cx, cy, cz],
+                     "quat_wxyz": [math.sqrt(0.5), math.sqrt(0.5), 0.0, 0.0]}
+            S = rc.solid_samples(plate, clearance=0.0)
+            cols = rparts.support_columns(S, rparts.FreeSpace([]), 0.0, np.array([cx - 0.15, cy - 0.05]),
+                                          np.array([cx + 0.15, cy + 0.05]))
+            assert 1 <= len(rparts.cradle_boxes(cols)) <= 12
+            holder = {"position_m": [0.45, -0.25, rc.LIFT_M]}
+            parts, volume = rc.cradle_parts(cols, holder, rc.solid_samples(plate))
+            assert parts and volume > 0, (radius, off)
+            under = []
+            for p in parts:
+                c = np.array(p["position_m"]) + [0.45, -0.25, 0.0]
+                half = np.array(p["size_m"])
+                lo, hi = c - half, c + half
+                assert (half > 0).all() and lo[2] >= -1e-9, p
+                xs = np.linspace(lo[0], hi[0], 80)
+                rim = cz - np.sqrt(np.maximum(radius ** 2 - (xs - cx) ** 2, 0.0))
+                if lo[1] < cy + 0.005 and hi[1] > cy - 0.005:
+                    assert (rim - hi[2]).min() > 0.0, (radius, off, lo, hi, (rim - hi[2]).min())
+                if lo[0] <= cx <= hi[0] and lo[1] < cy + 0.005 and hi[1] > cy - 0.005:
+                    under.append(hi[2])
+            assert under and max(under) > 0.0055 - 0.006, (radius, off, under)
+            if radius == 0.085 and off == 0.0:
+                P = np.array([[x, y, z] for x, y, b, t in cols for z in (b, t)])
+                assert rparts.inside(rparts.hull_of(P), S).any()
+
+
+def test_cradle_boxes_never_merge_into_an_empty_box():
+    """Columns alternating between two height ranges that do not overlap (0-2 cm and 2.5-4 cm)
+    never merge into a box whose bottom is above its top: each survives as its own box."""
+    cols = [(0.002 + 0.004 * k, 0.002, *((0.0, 0.02) if k % 2 == 0 else (0.025, 0.04))) for k in range(20)]
     boxes = rparts.cradle_boxes(cols)
-    assert 1 <= len(boxes) <= 12, len(boxes)
-    under = []
-    for c, half in boxes:
-        lo, hi = c - half, c + half
-        assert lo[2] >= -1e-9 and hi[2] > lo[2], (lo, hi)
-        xs = np.linspace(lo[0], hi[0], 50)
-        rim = 0.0905 - np.sqrt(np.maximum(0.085 ** 2 - (xs - 0.5) ** 2, 0.0))
-        # The rim over the box's span is above its top (the plate's faces are at y -0.205/-0.195).
-        if lo[1] < -0.195 and hi[1] > -0.205:
-            assert (rim - hi[2]).min() > 0.0, (lo, hi, (rim - hi[2]).min())
-        if lo[0] <= 0.5 <= hi[0]:
-            under.append(hi[2])
-    assert under and max(under) > 0.0055 - 0.006, under
-    # The convex hull of the same columns reaches into the rim.
-    P = np.array([[x, y, z] for x, y, b, t in cols for z in (b, t)])
-    h = rparts.hull_of(P)
-    assert rparts.inside(h, S).any()
+    assert len(boxes) == 20 and all(h[2] > 0.0004 for _, h in boxes), boxes
+
+
+def _posts_and_floor() -> np.ndarray:
+    """Points of two 1 cm posts 3 cm tall joined by a 5 mm floor, 6 cm long along x."""
+    g = np.linspace(0.0, 1.0, 12)
+    out = []
+    for x0, x1, z1 in ((0.0, 0.01, 0.03), (0.05, 0.06, 0.03), (0.0, 0.06, 0.005)):
+        X, Y, Z = np.meshgrid(x0 + g * (x1 - x0), -0.01 + g * 0.02, g * z1)
+        out.append(np.column_stack([X.ravel(), Y.ravel(), Z.ravel()]))
+    return np.concatenate(out)
+
+
+def test_decompose_cuts_around_another_objects_solid():
+    """Nothing is seen empty: the posts-and-floor points stay one part; with one sample of
+    another object's solid between the posts (a single cell, under the seen-empty tolerance
+    on its own) they are cut until no part holds it."""
+    P = _posts_and_floor()
+    fs = rparts.FreeSpace([])
+    whole = rparts.decompose(P, fs)
+    assert len(whole["parts"]) == 1 and whole["solid_samples_left"] == 0
+    solid = np.array([[0.03, 0.0, 0.02]])
+    cut = rparts.decompose(P, fs, solid=solid)
+    assert len(cut["parts"]) >= 2 and cut["solid_samples_left"] == 0, cut["cuts"]
+    assert not any(rparts.inside(rparts.hull_of(Q), solid).any() for Q in cut["parts"])
+    assert cut["residual_m3"] == 0.0
+
+
+def test_part_specs_writes_a_mesh_where_the_box_would_reach_into_a_solid():
+    """A block with one corner cut off fills its box enough to be written as a box; with a
+    sample of another object's solid in the cut-off corner it is a convex mesh instead."""
+    g = np.linspace(0.0, 0.04, 9)
+    X, Y, Z = np.meshgrid(g, g, g)
+    P = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+    P = P[P[:, 0] + P[:, 2] <= 0.065]   # the corner at x = z = 0.04 cut off
+    origin = np.zeros(3)
+    assert rparts.part_specs([P], origin)[0][0]["shape"] == "box"
+    assert rparts.part_specs([P], origin, np.array([[0.038, 0.02, 0.038]]))[0][0]["shape"] == "mesh"
+    assert rparts.part_specs([P], origin, np.array([[0.2, 0.2, 0.2]]))[0][0]["shape"] == "box"
+
+
+def test_container_fit_leaves_the_floor_seen_from_above_out():
+    """A wide shallow cup (radius 8 cm, 3 cm tall) whose walls are seen on one side only and
+    whose floor fills the view from above: most of its points are floor, yet it is a cup (the
+    floor, in the lowest fifth of the height, is not counted against the wall circle)."""
+    a = np.linspace(0.0, math.pi, 90)
+    zs = np.linspace(0.008, 0.03, 10)
+    walls = [np.column_stack([rr * np.cos(a), rr * np.sin(a), np.full(len(a), z)]) for rr in (0.08, 0.076) for z in zs]
+    g = np.arange(-0.076, 0.076, 0.002)
+    fx, fy = np.meshgrid(g, g)
+    keep = np.hypot(fx, fy) < 0.075
+    floor = np.column_stack([fx[keep], fy[keep], np.full(int(keep.sum()), 0.005)])
+    P = np.concatenate(walls + [floor])
+    assert len(floor) > sum(len(w) for w in walls)
+    cup = rparts.container_fit(P, 0.0, rparts.FreeSpace([_top_view_of_a_bin(0.08, 0.03, True)]))
+    assert cup is not None and abs(cup["radius"] - 0.08) < 0.006, cup
