@@ -423,6 +423,35 @@ def solid_contains(spec: dict, X: np.ndarray, clearance: float = SOLID_CLEARANCE
     return np.linalg.norm(L, axis=1) <= s[0]
 
 
+SEGMENT_MIN_HEIGHT_M = 0.005
+SEGMENT_PLANE_M = 0.006
+"""robo_perception.segment_scene's defaults: points within SEGMENT_PLANE_M of the plane are the
+plane's, objects start SEGMENT_MIN_HEIGHT_M above it."""
+NOISE_CUT_SIGMAS = 3.0
+"""With depth noise of standard deviation s (measured on the support plane), both become at least
+this many s."""
+
+
+def depth_noise(views: list) -> float:
+    """The depth noise's standard deviation (m), measured on the support plane: a RANSAC plane
+    through every view's points (every 4th pixel), and 1.4826 x the median absolute deviation of
+    the heights of the points within 2 cm of it. Synthetic renders give 0."""
+    pts = [rp.depth_to_points(np.nan_to_num(v.depth, nan=0.0), v.intrinsics, v.base_from_camera, stride=4)[0]
+           for v in views]
+    P = np.concatenate([p for p in pts if len(p)]) if any(len(p) for p in pts) else np.zeros((0, 3))
+    if len(P) < 100:
+        return 0.0
+    try:
+        plane, _ = rp.fit_plane_ransac(P, threshold=0.012)
+    except (ValueError, np.linalg.LinAlgError):
+        return 0.0
+    h = plane.distance(P)
+    h = h[np.abs(h) < 0.02]
+    if len(h) < 100:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(h - np.median(h))))
+
+
 def cradle_parts(columns: list, spec: dict, solid: np.ndarray) -> tuple[list, float]:
     """Support columns under a resting object -> box parts of the compound `spec` (in its frame:
     relative to its origin and turned by its `quat_wxyz`, a bin's yaw), each lowered below any of
@@ -921,10 +950,15 @@ def cmd_fit(a: argparse.Namespace) -> None:
     set_stage("segmenting the scene")
     choices: dict = {}
     import warnings
+    # Depth noise, read off the support plane: the height cut above the plane and the margin of
+    # the free space grow with it (a fixed 5 mm cut turns the table's noise into objects).
+    noise = depth_noise(views)
+    cut = max(SEGMENT_MIN_HEIGHT_M, NOISE_CUT_SIGMAS * noise)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            scene = rp.segment_scene(views, tracker=None, ignore_hand=panda)
+            scene = rp.segment_scene(views, tracker=None, ignore_hand=panda, min_height=cut,
+                                     plane_threshold=max(SEGMENT_PLANE_M, NOISE_CUT_SIGMAS * noise))
         except (ValueError, np.linalg.LinAlgError) as e:
             raise FramesError(f"no support plane or objects could be found in the frames: {e}") from None
     warn = [str(w.message) for w in caught] + list(scene.warnings)
@@ -946,7 +980,7 @@ def cmd_fit(a: argparse.Namespace) -> None:
     tops: dict = {}
     fitted: dict = {}
     # The space the source views saw through (robot pixels unknown): it checks hulls and boxes.
-    free = rparts.FreeSpace(views)
+    free = rparts.FreeSpace(views, noise_m=noise)
     sparse = [rp.voxel_downsample(c.points, 0.004)[0] if len(c.points) > 1 else c.points for c in clusters]
     for i in order:
         o = clusters[i]
@@ -1137,6 +1171,8 @@ def cmd_fit(a: argparse.Namespace) -> None:
                                                "robot_pixels": int(robot_px[f.id].sum())} for f in frames],
         "world": "robot base frame", "robot": {"urdf": urdf, "self_filter": "render of the URDF at the capture joints"
                                                + (" + Panda capsules (robo_perception)" if panda else "")},
+        "depth_noise": {"sigma_mm": r(noise * 1000, 2), "height_cut_m": r(cut, 4), "free_space_margin_m": r(free.margin, 4),
+                        "how": "1.4826 x MAD of the heights within 2 cm of a RANSAC support plane"},
         "support_plane": {"normal": [r(v, 5) for v in plane.normal], "tilt_deg": r(tilt, 3),
                           "z_at_origin_m": r(plane.height_at_origin, 5)},
         "table": table,

@@ -54,9 +54,11 @@ class FreeSpace:
     NaN where unknown, e.g. the robot's pixels), ``intrinsics`` {fx, fy, cx, cy} and
     ``base_from_camera`` (4x4)."""
 
-    def __init__(self, views: list) -> None:
+    def __init__(self, views: list, noise_m: float = 0.0) -> None:
         from scipy.ndimage import minimum_filter
 
+        # A depth with noise of standard deviation `noise_m` says less: the margin grows by 3 of it.
+        self.margin = EMPTY_MARGIN_M + 3.0 * max(0.0, float(noise_m))
         self.cams = []
         for v in views:
             d = np.nan_to_num(np.asarray(v.depth, dtype=np.float64), nan=0.0, posinf=0.0)
@@ -82,7 +84,7 @@ class FreeSpace:
             ok &= (u >= 0) & (u < W) & (v >= 0) & (v < H)
             d = np.zeros(len(P))
             d[ok] = dn[v[ok], u[ok]]
-            out |= ok & (d > 0) & (z < d - EMPTY_MARGIN_M - EMPTY_MARGIN_REL * d)
+            out |= ok & (d > 0) & (z < d - self.margin - EMPTY_MARGIN_REL * d)
         return out
 
 

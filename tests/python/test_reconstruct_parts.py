@@ -507,3 +507,23 @@ def test_container_fit_leaves_the_floor_seen_from_above_out():
     assert len(floor) > sum(len(w) for w in walls)
     cup = rparts.container_fit(P, 0.0, rparts.FreeSpace([_top_view_of_a_bin(0.08, 0.03, True)]))
     assert cup is not None and abs(cup["radius"] - 0.08) < 0.006, cup
+
+
+def test_depth_noise_is_read_off_the_support_plane():
+    """A synthetic camera 1 m above a table: noise-free depth gives 0; depth with Gaussian noise
+    of 2 mm gives about 2 mm (a block standing on the table does not change it), which is what
+    raises the height cut above the plane and the free-space margin."""
+    import r2g_reconstruct as rc
+
+    W = H = 240
+    f = 300.0
+    T = np.eye(4)
+    T[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]
+    T[:3, 3] = [0.0, 0.0, 1.0]
+    d = np.ones((H, W))
+    d[100:140, 100:140] = 0.95    # a 5 cm tall block
+    assert rc.depth_noise([_view(d, f, f, W / 2, H / 2, T)]) < 2e-4
+    noisy = d + np.random.default_rng(1).normal(0.0, 0.002, d.shape)
+    sigma = rc.depth_noise([_view(noisy, f, f, W / 2, H / 2, T)])
+    assert 0.0017 < sigma < 0.0023, sigma
+    assert rparts.FreeSpace([_view(noisy, f, f, W / 2, H / 2, T)], noise_m=sigma).margin > rparts.EMPTY_MARGIN_M + 0.005
