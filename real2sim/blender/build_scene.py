@@ -2,17 +2,23 @@
 and camera so the physics plays back, saves the .blend and renders chosen instants with Cycles on
 the CPU. Runs in the Python of .venv-blender (Blender as a Python module, bpy 5.0.1).
 
-The document (written by cli/src/blender_cmd.rs) holds MuJoCo's drawn geoms (primitive type and
-size, or a mesh's vertices and faces), their colours and bodies, per state every moving body's and
-camera's world pose, the cameras' intrinsics and resolution, and the lights.
+The document (written by real2sim/src/blender.rs, `export`) holds MuJoCo's drawn geoms (primitive
+type and size, or a mesh's vertices and faces), their colours and bodies, per state every moving
+body's and camera's world pose, the cameras' intrinsics and resolution, and the lights.
 
 Colours follow MuJoCo's renderer rather than a photographic camera: the view transform is Raw
 (a pixel's byte is 255 times its linear value, as in MuJoCo's OpenGL output), MuJoCo's rgba is the
-surface's base colour as it is, a light's diffuse colour becomes a sun of strength pi times it
-(so a white surface facing it reflects the same value), the headlight is a sun along the
-camera's view, and the headlight's ambient term is the world's light seen by everything but
-camera rays, which see the sky's mean colour. Spot lights lose their cone (MuJoCo's default
-attenuation is none, so distance plays no part in either).
+surface's base colour as it is, and the headlight's ambient term is the world's light seen by
+everything but camera rays, which see the sky's mean colour. A 2-D texture on a plane (the
+checkered floor) is drawn from its pixels with the texture coordinates MuJoCo generates there
+(`plane_uvs`), times the geom's colour; every other texture (cube and skybox textures, textures
+on other geoms) only tints the colour with its mean, which the export has already applied.
+Lights: a spot light becomes a Cycles spot light with MuJoCo's cone (cutoff), dimmed off its
+axis by the cosine to MuJoCo's exponent, whose strength does not fall off with distance (MuJoCo's
+default attenuation is none; other attenuations are not reproduced); a directional light, and
+the point and image lights that MuJoCo's OpenGL renderer does not set up, become suns; the
+headlight is a sun along the camera's view. Strengths are set so that a white surface facing a
+light reflects its diffuse colour, as in MuJoCo.
 
 Masks: a second render of every shot draws each object in a flat colour (red = 8 x (object index
 + 1), everything else black), one sample per pixel at the pixel's centre, with no denoising.
@@ -115,15 +121,59 @@ def mesh_from_arrays(name, m):
     return me
 
 
-def material(name, rgba):
+def material(name, rgba, image=None):
+    """A surface of colour `rgba`; with `image`, the image (looked up at the mesh's UVs,
+    repeated) times that colour, as MuJoCo modulates a texture by the geom's colour."""
     mat = bpy.data.materials.new(name)
     mat.use_nodes = True
-    bsdf = mat.node_tree.nodes.get("Principled BSDF")
+    nt = mat.node_tree
+    bsdf = nt.nodes.get("Principled BSDF")
     bsdf.inputs["Base Color"].default_value = (rgba[0], rgba[1], rgba[2], 1.0)
     bsdf.inputs["Roughness"].default_value = 0.5
     bsdf.inputs["Alpha"].default_value = rgba[3]
     mat.diffuse_color = tuple(rgba)
+    if image is not None:
+        tex = nt.nodes.new("ShaderNodeTexImage")
+        tex.image = image
+        tex.interpolation = "Linear"
+        tex.extension = "REPEAT"
+        tint = nt.nodes.new("ShaderNodeVectorMath")
+        tint.operation = "MULTIPLY"
+        tint.inputs[1].default_value = (rgba[0], rgba[1], rgba[2])
+        nt.links.new(tex.outputs["Color"], tint.inputs[0])
+        nt.links.new(tint.outputs["Vector"], bsdf.inputs["Base Color"])
     return mat
+
+
+def texture_image(name, t):
+    """A 2-D texture of the document (RGB bytes, MuJoCo's first row first) as a packed Blender
+    image whose first row is v = 0, as MuJoCo's first row is texture coordinate t = 0."""
+    w, h = int(t["width"]), int(t["height"])
+    raw = np.frombuffer(base64.b64decode(t["rgb_b64"]), dtype=np.uint8)
+    if w <= 0 or h <= 0 or raw.size != 3 * w * h:
+        fail(f"texture {name}: {raw.size} bytes for {w}x{h} RGB pixels")
+    img = bpy.data.images.new(name, width=w, height=h, alpha=False)
+    # MuJoCo draws the bytes as they are (sRGB ones decoded first), as Raw view shows them.
+    img.colorspace_settings.name = "sRGB" if t.get("srgb") else "Non-Color"
+    px = np.ones((w * h, 4), dtype=np.float32)
+    px[:, :3] = raw.reshape(-1, 3) / np.float32(255.0)
+    img.pixels.foreach_set(px.ravel())
+    img.pack()
+    return img
+
+
+def plane_uvs(me, size, t):
+    """Texture coordinates MuJoCo's renderer generates on a plane (render_gl3.c, settexture):
+    s = rx x / 2 - 1/2 and t = -ry y / 2 - 1/2 with x, y in the plane's frame measured in half
+    sizes, or in metres when the material's texuniform is set (rx, ry: its texrepeat). So the
+    texture repeats rx times across the plane's width, or rx / 2 times per metre when uniform."""
+    rx, ry = t["repeat"]
+    ux = 1.0 if t["uniform"] or size[0] <= 0 else size[0]
+    uy = 1.0 if t["uniform"] or size[1] <= 0 else size[1]
+    uv = me.uv_layers.new(name="mujoco")
+    for loop in me.loops:
+        co = me.vertices[loop.vertex_index].co
+        uv.data[loop.index].uv = (0.5 * rx * co.x / ux - 0.5, -0.5 * ry * co.y / uy - 0.5)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -217,13 +267,68 @@ def sun(name, direction, strength, shadow):
     light.angle = 0.0
     light.use_shadow = bool(shadow)
     obj = bpy.data.objects.new(name, light)
-    d = np.asarray(direction, dtype=float)
-    d = d / max(np.linalg.norm(d), 1e-12)
+    obj.rotation_mode = "QUATERNION"
+    obj.rotation_quaternion = track_quat(direction)
+    return obj
+
+
+# Cycles' point and spot lights: a white surface facing one of power P at the distance where the
+# falloff is constant reflects P / (4 pi^2) (measured: 1.000 for P = 4 pi^2).
+POINT_POWER_PER_UNIT = 4.0 * math.pi ** 2
+
+
+def spot(name, l):
+    """MuJoCo's spot light as Cycles draws it: a cone of half angle `cutoff_deg`, inside which
+    the light is dimmed by cos(angle off the axis) ** exponent, as OpenGL's fixed-function spot
+    light that MuJoCo's renderer sets up; its strength does not fall off with distance (the
+    constant output of the Light Falloff node), as MuJoCo's default attenuation (1, 0, 0)."""
+    d = max(max(l["diffuse"]), 1e-9)
+    light = bpy.data.lights.new(name, "SPOT")
+    light.energy = POINT_POWER_PER_UNIT * max(l["diffuse"])
+    light.color = [c / d for c in l["diffuse"]]
+    light.spot_size = min(2.0 * math.radians(l["cutoff_deg"]), math.pi)
+    light.spot_blend = 0.0
+    light.shadow_soft_size = 0.0
+    light.use_shadow = bool(l["cast_shadow"])
+    if hasattr(light, "use_soft_falloff"):
+        light.use_soft_falloff = False
+    light.use_nodes = True
+    nt = light.node_tree
+    emission = nt.nodes["Emission"]
+    falloff = nt.nodes.new("ShaderNodeLightFalloff")
+    falloff.inputs["Strength"].default_value = 1.0
+    # A light's Normal coordinate is the direction it shines along, in the light's frame, whose
+    # -z is its axis.
+    coord = nt.nodes.new("ShaderNodeTexCoord")
+    xyz = nt.nodes.new("ShaderNodeSeparateXYZ")
+    nt.links.new(coord.outputs["Normal"], xyz.inputs[0])
+
+    def math_node(op, a, b):
+        n = nt.nodes.new("ShaderNodeMath")
+        n.operation = op
+        for k, v in enumerate((a, b)):
+            if isinstance(v, (int, float)):
+                n.inputs[k].default_value = v
+            else:
+                nt.links.new(v, n.inputs[k])
+        return n.outputs[0]
+
+    cos_axis = math_node("MAXIMUM", math_node("MULTIPLY", xyz.outputs["Z"], -1.0), 0.0)
+    dim = math_node("POWER", cos_axis, float(l["exponent"]))
+    nt.links.new(math_node("MULTIPLY", dim, falloff.outputs["Constant"]), emission.inputs["Strength"])
+    obj = bpy.data.objects.new(name, light)
+    obj.rotation_mode = "QUATERNION"
+    obj.rotation_quaternion = track_quat(l["dir"])
+    return obj
+
+
+def track_quat(direction):
+    """The rotation that points an object's -z along `direction` (image up along +y)."""
     from mathutils import Vector
 
-    obj.rotation_mode = "QUATERNION"
-    obj.rotation_quaternion = Vector(d.tolist()).to_track_quat("-Z", "Y")
-    return obj
+    d = np.asarray(direction, dtype=float)
+    d = d / max(np.linalg.norm(d), 1e-12)
+    return Vector(d.tolist()).to_track_quat("-Z", "Y")
 
 
 def make_world(name, sky, ambient):
@@ -292,6 +397,7 @@ def build(doc):
 
     meshes = [mesh_from_arrays(m["name"] or f"mesh{i}", m) for i, m in enumerate(doc["meshes"])]
     mats = {}
+    images = {}
     n_obj = len(doc["objects"])
     for i, g in enumerate(doc["geoms"]):
         gname = g["name"] or f"geom{i}"
@@ -300,8 +406,20 @@ def build(doc):
         else:
             data = primitive_mesh(gname, g["type"], g["size"])
         key = tuple(round(c, 4) for c in g["rgba"])
+        tex = g.get("texture")
+        if tex is not None:
+            if g["type"] != "plane":
+                fail(f"geom {gname}: a texture is mapped on planes only, this is a {g['type']}")
+            key = (*key, tex["name"], *tex["repeat"], tex["uniform"])
+            plane_uvs(data, g["size"], tex)
         if key not in mats:
-            mats[key] = material(f"rgba_{len(mats)}", g["rgba"])
+            image = None
+            if tex is not None:
+                # One image per texture, however many materials use it.
+                if tex["rgb_b64"] not in images:
+                    images[tex["rgb_b64"]] = texture_image(tex["name"] or f"texture{len(images)}", tex)
+                image = images[tex["rgb_b64"]]
+            mats[key] = material(f"rgba_{len(mats)}", g["rgba"], image)
         obj = bpy.data.objects.new(gname, data)
         if g["type"] == "mesh":
             # Geoms may share a mesh: the mesh has one empty slot, each object fills it.
@@ -337,8 +455,12 @@ def build(doc):
 
     # Lights: MuJoCo's, then the headlight (a sun along the active camera's view).
     for i, l in enumerate(doc["lights"]):
-        s = sun(l["name"] or f"light{i}", l["dir"], math.pi * max(l["diffuse"]), l["cast_shadow"])
-        s.data.color = [d / max(max(l["diffuse"]), 1e-9) for d in l["diffuse"]]
+        name = l["name"] or f"light{i}"
+        if l["type"] == "spot":
+            s = spot(name, l)
+        else:
+            s = sun(name, l["dir"], math.pi * max(l["diffuse"]), l["cast_shadow"])
+            s.data.color = [d / max(max(l["diffuse"]), 1e-9) for d in l["diffuse"]]
         s.location = l["pos"]
         scene.collection.objects.link(s)
     head = doc["headlight"]

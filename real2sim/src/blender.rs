@@ -2,8 +2,9 @@
 //! from a native trace, optionally rendered with Cycles on the CPU.
 //!
 //! The scene is compiled by sim-host (the same MJCF MuJoCo simulates); what MuJoCo draws (geoms
-//! of groups 0-2), its cameras and its lights are read from the compiled model and written to a
-//! JSON document ([`export`]). Every trace sample's state (objects, fixture joints, arm joints,
+//! of groups 0-2, with the pixels of a 2-D texture on a plane), its cameras and its lights (with
+//! a spot light's cone and exponent) are read from the compiled model and written to a JSON
+//! document ([`export`]). Every trace sample's state (objects, fixture joints, arm joints,
 //! fingers) is set on the model and MuJoCo's forward kinematics gives each body's and camera's
 //! world pose. The document goes to `real2sim/blender/build_scene.py`, run by the Python of
 //! `.venv-blender` (Blender as a Python module, [`run_blender`]), which builds the scene with bpy,
@@ -181,13 +182,21 @@ pub fn export(sim: &mut Sim, motion: &Motion) -> anyhow::Result<Value> {
         )
     };
     // SAFETY: as above.
-    let (mat_rgba, mat_texid, ntex) =
-        unsafe { (arr(m.mat_rgba, 4 * m.nmat as usize), arr(m.mat_texid, 10 * m.nmat as usize), m.ntex as usize) };
+    let (mat_rgba, mat_texid, mat_texuniform, mat_texrepeat, ntex) = unsafe {
+        (
+            arr(m.mat_rgba, 4 * m.nmat as usize),
+            arr(m.mat_texid, 10 * m.nmat as usize),
+            arr(m.mat_texuniform, m.nmat as usize),
+            arr(m.mat_texrepeat, 2 * m.nmat as usize),
+            m.ntex as usize,
+        )
+    };
     let n_roles = if m.nmat > 0 { mat_texid.len() / m.nmat as usize } else { 0 };
     // SAFETY: as above.
-    let (tex_type, tex_adr, tex_w, tex_h, tex_nc, tex_data) = unsafe {
+    let (tex_type, tex_space, tex_adr, tex_w, tex_h, tex_nc, tex_data) = unsafe {
         (
             arr(m.tex_type, ntex),
+            arr(m.tex_colorspace, ntex),
             arr(m.tex_adr, ntex),
             arr(m.tex_width, ntex),
             arr(m.tex_height, ntex),
@@ -209,6 +218,29 @@ pub fn export(sim: &mut Sim, motion: &Motion) -> anyhow::Result<Value> {
             count += 1;
         }
         acc.map(|a| round6(a / count.max(1) as f64))
+    };
+    // A 2-D texture's pixels as RGB bytes, rows in MuJoCo's order (the first row is texture
+    // coordinate t = 0), with what MuJoCo's renderer needs to map it on a plane.
+    let tex_image = |t: usize, mi: usize| -> anyhow::Result<Value> {
+        let (adr, w, h, nc) = (tex_adr[t] as usize, tex_w[t] as usize, tex_h[t] as usize, tex_nc[t] as usize);
+        let Some(px) = tex_data.get(adr..adr + w * h * nc).filter(|_| (1..=4).contains(&nc) && w * h > 0) else {
+            bail!(
+                "texture {t} ('{}'): {w}x{h} pixels of {nc} channels do not fit the model's texture data",
+                name(Obj::mjOBJ_TEXTURE, t)
+            );
+        };
+        let rgb: Vec<u8> =
+            px.chunks(nc).flat_map(|p| if nc >= 3 { [p[0], p[1], p[2]] } else { [p[0], p[0], p[0]] }).collect();
+        Ok(json!({
+            "name": name(Obj::mjOBJ_TEXTURE, t),
+            "width": w,
+            "height": h,
+            "rgb_b64": base64(&rgb),
+            // mjtColorSpace: auto and linear are drawn as they are, sRGB is decoded first.
+            "srgb": tex_space[t] == 2,
+            "repeat": [round6(mat_texrepeat[2 * mi] as f64), round6(mat_texrepeat[2 * mi + 1] as f64)],
+            "uniform": mat_texuniform[mi],
+        }))
     };
     // SAFETY: as above.
     let (mvadr, mvnum, mfadr, mfnum, mvert, mface) = unsafe {
@@ -239,6 +271,7 @@ pub fn export(sim: &mut Sim, motion: &Motion) -> anyhow::Result<Value> {
         // MuJoCo draws a material's colour (and its texture's) unless the geom sets its own.
         let mut rgba: Vec<f64> = grgba[4 * g..4 * g + 4].iter().map(|&c| round6(c as f64)).collect();
         let mut texture_mean = None;
+        let mut texture = None;
         if gmat[g] >= 0 {
             let mi = gmat[g] as usize;
             let default_rgba = rgba == [0.5, 0.5, 0.5, 1.0];
@@ -248,9 +281,14 @@ pub fn export(sim: &mut Sim, motion: &Motion) -> anyhow::Result<Value> {
             // The RGB role (index 1) or the legacy first slot.
             let tex = (0..n_roles).map(|r| mat_texid[n_roles * mi + r]).find(|&t| t >= 0);
             if let Some(t) = tex {
-                let mean = tex_mean(t as usize);
+                let t = t as usize;
+                let mean = tex_mean(t);
                 texture_mean = Some(mean);
-                if default_rgba {
+                // A 2-D texture on a plane is drawn as MuJoCo maps it (build_scene.py); on
+                // anything else, and for cube and skybox textures, its mean colour tints rgba.
+                if kind == "plane" && tex_type[t] == 0 {
+                    texture = Some(tex_image(t, mi)?);
+                } else if default_rgba {
                     for c in 0..3 {
                         rgba[c] = round6(rgba[c] * mean[c]);
                     }
@@ -272,6 +310,9 @@ pub fn export(sim: &mut Sim, motion: &Motion) -> anyhow::Result<Value> {
         });
         if let Some(t) = texture_mean {
             e["texture_mean_rgb"] = json!(t);
+        }
+        if let Some(t) = texture {
+            e["texture"] = t;
         }
         if kind == "mesh" {
             let id = gdata[g] as usize;
@@ -339,7 +380,7 @@ pub fn export(sim: &mut Sim, motion: &Motion) -> anyhow::Result<Value> {
         c["poses"] = json!(poses);
     }
     // SAFETY: light arrays hold nlight entries.
-    let (lpos, ldir, ltype, ldiff, lamb, lshadow, lactive) = unsafe {
+    let (lpos, ldir, ltype, ldiff, lamb, lshadow, lactive, lcut, lexp, latt) = unsafe {
         let d = sim.data.ffi();
         (
             arr(d.light_xpos, 3 * nlight),
@@ -349,6 +390,9 @@ pub fn export(sim: &mut Sim, motion: &Motion) -> anyhow::Result<Value> {
             arr(m.light_ambient, 3 * nlight),
             arr(m.light_castshadow, nlight),
             arr(m.light_active, nlight),
+            arr(m.light_cutoff, nlight),
+            arr(m.light_exponent, nlight),
+            arr(m.light_attenuation, 3 * nlight),
         )
     };
     let lights: Vec<Value> = (0..nlight)
@@ -364,6 +408,11 @@ pub fn export(sim: &mut Sim, motion: &Motion) -> anyhow::Result<Value> {
                 "diffuse": ldiff[3 * i..3 * i + 3].iter().map(|&v| round6(v as f64)).collect::<Vec<_>>(),
                 "ambient": lamb[3 * i..3 * i + 3].iter().map(|&v| round6(v as f64)).collect::<Vec<_>>(),
                 "cast_shadow": lshadow[i],
+                // A spot light's cone (degrees from its axis), the power of the cosine that
+                // dims it off the axis, and its attenuation (constant, linear, quadratic).
+                "cutoff_deg": round6(lcut[i] as f64),
+                "exponent": round6(lexp[i] as f64),
+                "attenuation": latt[3 * i..3 * i + 3].iter().map(|&v| round6(v as f64)).collect::<Vec<_>>(),
             })
         })
         .collect();

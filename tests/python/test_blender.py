@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -131,13 +132,21 @@ def test_blend_keyframes_every_body_as_the_trace_moves_it(tmp_path, trace):
 IOU_MIN = 0.97
 
 
-def test_compare_sheet_blender_and_mujoco_silhouettes_agree(tmp_path, trace):
+@pytest.fixture(scope="module")
+def agentview_sheet(tmp_path_factory, trace) -> tuple[Path, dict]:
+    """`r2g compare` of the scene at rest and with the block lifted, from agentview, 4 samples."""
+    out = tmp_path_factory.mktemp("sheet")
     samples = json.loads(trace.read_text())["samples"]
     lifted = samples[int(np.argmax([s["objects"][0][2] for s in samples]))]["t_s"]
-    sheet = tmp_path / "sheet.png"
+    sheet = out / "sheet.png"
     r = r2g("compare", GYM, "--trace", trace, "--at", f"0,{lifted}", "--camera", "agentview",
             "--samples", "4", "--out", sheet)
-    report = json.loads(r.stdout.strip().splitlines()[-1])
+    return sheet, json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def test_compare_sheet_blender_and_mujoco_silhouettes_agree(agentview_sheet):
+    sheet, report = agentview_sheet
+    tmp_path = sheet.parent
     assert json.loads((tmp_path / "sheet.json").read_text()) == report
     img = read_png(sheet)
     # Two rows (instants) of three tiles: MuJoCo, Blender, silhouettes.
@@ -161,6 +170,80 @@ def test_compare_sheet_blender_and_mujoco_silhouettes_agree(tmp_path, trace):
     bl = read_png(renders / "blender" / "mask_visib" / f"{report['rows'][0]['blender_image']:06d}_000000.png") > 127
     assert mj.sum() == report["rows"][1]["objects"]["block"]["mujoco_px"]
     assert (mj & bl).sum() / max((mj | bl).sum(), 1) < 0.5
+
+
+def floor_height(gym: str) -> float:
+    """Where sim-host puts the floor plane (sim-host/src/mjcf.rs): 0.75 m below the table's top,
+    at 0 without a table."""
+    scene = tomllib.loads((ROOT / "gyms" / gym / "scene.toml").read_text())
+    return scene["table"]["top_center_m"][2] - 0.75 if "table" in scene else 0.0
+
+
+def floor_pixels(bop: Path, image: int, floor_z: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels of a BOP render on the floor (MuJoCo's depth back-projected into the world: at
+    height `floor_z`, to 3 mm), per pixel its world x, y (m), and the pixels with any geometry
+    (not the sky)."""
+    cam = json.loads((bop / "scene_camera.json").read_text())[str(image)]
+    depth = read_png(bop / "depth" / f"{image:06d}.png").astype(np.float64) * cam["depth_scale"]
+    h, w = depth.shape
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    rays = np.linalg.inv(np.reshape(cam["cam_K"], (3, 3))) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
+    r, t = np.reshape(cam["cam_R_w2c"], (3, 3)), np.asarray(cam["cam_t_w2c"])
+    world = (r.T @ (rays * depth.ravel() - t[:, None])).T.reshape(h, w, 3) / 1000.0
+    return (depth > 0) & (np.abs(world[..., 2] - floor_z) < 0.003), world[..., :2], depth > 0
+
+
+def floor_figures(renders: Path, row: dict, floor_z: float, flatten: bool = False) -> dict:
+    """The floor of one row of an `r2g compare` sheet (`renders`: its `.renders/` folder) in both
+    renderers: its pixel count, the mean absolute difference of MuJoCo's and Blender's colours
+    over it (0-255, all three channels), and in each the mean over the checker's light squares
+    minus the mean over its dark squares; and the mean absolute difference over every pixel with
+    geometry (the sky left out), where the lights show.
+
+    sim-host's floor (sim-host/src/mjcf.rs) is a 6 x 6 m plane at the world origin with a 2 x 2
+    checker texture and texrepeat 6 6, so MuJoCo's texture coordinates there are s = x - 1/2,
+    t = -y - 1/2 (x, y in metres): 0.5 m squares, the light colour (rgb1) where s and t have
+    fractional parts on the same side of 1/2. Pixels within 3 cm of a square's edge count in
+    the difference, not in the contrast. `flatten`: Blender's floor pixels replaced by their mean
+    colour first (what r2g blender drew before it mapped the texture)."""
+    floor, xy, drawn = floor_pixels(renders / "mujoco", row["mujoco_image"], floor_z)
+    s, t = xy[..., 0] - 0.5, -xy[..., 1] - 0.5
+    fs, ft = s - np.floor(s), t - np.floor(t)
+    light = (fs < 0.5) == (ft < 0.5)
+    inner = floor & (np.minimum.reduce([abs(fs - 0.5), fs, 1 - fs, abs(ft - 0.5), ft, 1 - ft]) > 0.03)
+    mj = read_png(renders / "mujoco" / "rgb" / f"{row['mujoco_image']:06d}.png").astype(np.float64)
+    bl = read_png(renders / "blender" / "rgb" / f"{row['blender_image']:06d}.png").astype(np.float64)
+    if flatten and floor.any():
+        bl[floor] = bl[floor].mean(axis=0)
+
+    def contrast(img):
+        a, b = img[inner & light], img[inner & ~light]
+        return round(float(a.mean() - b.mean()), 2) if a.size and b.size else None
+
+    return {"camera": row["camera"], "t_s": row["t_s"], "floor_px": int(floor.sum()),
+            "mean_abs_diff": round(float(np.abs(mj - bl)[floor].mean()), 2) if floor.any() else None,
+            "contrast_mujoco": contrast(mj), "contrast_blender": contrast(bl),
+            "mean_abs_diff_drawn": round(float(np.abs(mj - bl)[drawn].mean()), 2)}
+
+
+def test_the_floor_is_the_checker_mujoco_draws(agentview_sheet):
+    # Both renderers must show the same difference between the checker's light and dark squares
+    # (a floor painted one flat colour shows none, a texture flipped or shifted by a square
+    # shows it reversed) and nearly the same colours.
+    sheet, report = agentview_sheet
+    renders = sheet.parent / "sheet.renders"
+    f = floor_figures(renders, report["rows"][0], floor_height(GYM))
+    print(f"floor: {f}")
+    assert f["floor_px"] > 20000, "agentview sees the floor behind the table"
+    # MuJoCo's own image shows the squares where floor_figures puts them (a changed floor in
+    # sim-host fails here, not silently below).
+    assert f["contrast_mujoco"] > 10
+    assert abs(f["contrast_blender"] - f["contrast_mujoco"]) < 0.25 * f["contrast_mujoco"], f
+    # Measured: 1.6-1.8 (46.5 with the floor flat and the spot light a sun).
+    assert f["mean_abs_diff"] < 5.0, f
+    # The measure can fail: Blender's floor flattened to its mean colour loses the squares.
+    flat = floor_figures(renders, report["rows"][0], floor_height(GYM), flatten=True)
+    assert abs(flat["contrast_blender"] - f["contrast_mujoco"]) >= 0.25 * f["contrast_mujoco"], flat
 
 
 def test_compare_against_source_frames_from_off_centre_cameras(tmp_path, trace):
@@ -302,3 +385,15 @@ def test_compare_frames_of_a_robot_whose_base_is_not_the_origin(tmp_path):
         assert np.allclose(a["cam_t_w2c"], b["cam_t_w2c"], atol=1e-3), (a, b)
         for name, o in row["objects"].items():
             assert o["mujoco_px"] > 20 and o["iou"] >= IOU_MIN, (row["camera"], name, o)
+
+
+if __name__ == "__main__":
+    # The floor figures of every row of a sheet, as docs/blender/README.md quotes them:
+    #   .venv/bin/python tests/python/test_blender.py <sheet.json> [<sheet.renders>]
+    import sys
+
+    sheet_json = Path(sys.argv[1])
+    rep = json.loads(sheet_json.read_text())
+    where = Path(sys.argv[2]) if len(sys.argv) > 2 else sheet_json.with_suffix(".renders")
+    for r in rep["rows"]:
+        print(json.dumps(floor_figures(where, r, floor_height(rep["gym"]))))
