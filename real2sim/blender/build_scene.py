@@ -36,6 +36,9 @@ import bpy  # first: bmesh and mathutils load with it
 import bmesh
 import numpy as np
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from plane_uv import plane_st  # noqa: E402
+
 LABEL_STEP = 8
 
 
@@ -163,17 +166,11 @@ def texture_image(name, t):
 
 
 def plane_uvs(me, size, t):
-    """Texture coordinates MuJoCo's renderer generates on a plane (render_gl3.c, settexture):
-    s = rx x / 2 - 1/2 and t = -ry y / 2 - 1/2 with x, y in the plane's frame measured in half
-    sizes, or in metres when the material's texuniform is set (rx, ry: its texrepeat). So the
-    texture repeats rx times across the plane's width, or rx / 2 times per metre when uniform."""
-    rx, ry = t["repeat"]
-    ux = 1.0 if t["uniform"] or size[0] <= 0 else size[0]
-    uy = 1.0 if t["uniform"] or size[1] <= 0 else size[1]
+    """The plane's UVs: the texture coordinates MuJoCo gives it (`plane_uv.plane_st`)."""
     uv = me.uv_layers.new(name="mujoco")
     for loop in me.loops:
         co = me.vertices[loop.vertex_index].co
-        uv.data[loop.index].uv = (0.5 * rx * co.x / ux - 0.5, -0.5 * ry * co.y / uy - 0.5)
+        uv.data[loop.index].uv = plane_st(co.x, co.y, size, t["repeat"], t["uniform"])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -283,6 +280,10 @@ def spot(name, l):
     light that MuJoCo's renderer sets up; its strength does not fall off with distance (the
     constant output of the Light Falloff node), as MuJoCo's default attenuation (1, 0, 0)."""
     d = max(max(l["diffuse"]), 1e-9)
+    att = l.get("attenuation", [1.0, 0.0, 0.0])
+    if any(abs(a - b) > 1e-9 for a, b in zip(att, (1.0, 0.0, 0.0))):
+        print(f"build_scene: light {name}: attenuation {att} is not reproduced (drawn as (1, 0, 0): "
+              "no falloff with distance)", file=sys.stderr)
     light = bpy.data.lights.new(name, "SPOT")
     light.energy = POINT_POWER_PER_UNIT * max(l["diffuse"])
     light.color = [c / d for c in l["diffuse"]]

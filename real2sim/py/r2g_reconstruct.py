@@ -432,24 +432,47 @@ NOISE_CUT_SIGMAS = 3.0
 this many s."""
 
 
-def depth_noise(views: list) -> float:
-    """The depth noise's standard deviation (m), measured on the support plane: a RANSAC plane
-    through every view's points (every 4th pixel), and 1.4826 x the median absolute deviation of
-    the heights of the points within 2 cm of it. Synthetic renders give 0."""
-    pts = [rp.depth_to_points(np.nan_to_num(v.depth, nan=0.0), v.intrinsics, v.base_from_camera, stride=4)[0]
-           for v in views]
-    P = np.concatenate([p for p in pts if len(p)]) if any(len(p) for p in pts) else np.zeros((0, 3))
-    if len(P) < 100:
-        return 0.0
+NOISE_CUT_MAX_M = 0.015
+"""The height cut never goes above this (3 sigma of 5 mm): noisier depth is reported, and objects
+lower than the cut are lost."""
+
+
+def depth_noise(views: list) -> tuple[float, float]:
+    """(sigma of the heights, sigma along the cameras' rays) of the depth noise in metres, read
+    off the support plane: a RANSAC plane through every view's points (every 4th pixel, inliers
+    within 3 mm); the heights within 2 cm of it; their mode m (the 0.25 mm bin with most heights,
+    then the median of those within 3 mm of it); and 1.4826 x the median of m - h over
+    the points below the mode only, since whatever stands on the table (a plate, a tray, the
+    bottom of a side face) adds heights above it and nothing lies below it. Along the rays each
+    height is divided by the cosine between the ray and the plane's normal first (a camera at
+    45 degrees sees 3 mm of depth noise as about 2 mm of height). Synthetic renders give about
+    0.1 mm."""
+    pts, rays = [], []
+    for v in views:
+        P = rp.depth_to_points(np.nan_to_num(v.depth, nan=0.0), v.intrinsics, v.base_from_camera, stride=4)[0]
+        if len(P):
+            d = P - np.asarray(v.base_from_camera, dtype=float)[:3, 3]
+            pts.append(P)
+            rays.append(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9))
+    if not pts or sum(len(p) for p in pts) < 100:
+        return 0.0, 0.0
+    P, D = np.concatenate(pts), np.concatenate(rays)
     try:
-        plane, _ = rp.fit_plane_ransac(P, threshold=0.012)
+        plane, _ = rp.fit_plane_ransac(P, threshold=0.5 * SEGMENT_PLANE_M)
     except (ValueError, np.linalg.LinAlgError):
-        return 0.0
+        return 0.0, 0.0
     h = plane.distance(P)
-    h = h[np.abs(h) < 0.02]
+    near = np.abs(h) < 0.02
+    h, cos = h[near], np.maximum(np.abs(D[near] @ np.asarray(plane.normal, dtype=float)), 0.2)
     if len(h) < 100:
-        return 0.0
-    return float(1.4826 * np.median(np.abs(h - np.median(h))))
+        return 0.0, 0.0
+    counts, edges = np.histogram(h, bins=160, range=(-0.02, 0.02))
+    m = float((edges[:-1] + edges[1:])[int(np.argmax(counts))] / 2)
+    m = float(np.median(h[np.abs(h - m) < 0.003]))   # the peak's centre, finer than a bin
+    below = h < m
+    if below.sum() < 50:
+        return 0.0, 0.0
+    return (float(1.4826 * np.median(m - h[below])), float(1.4826 * np.median((m - h[below]) / cos[below])))
 
 
 def cradle_parts(columns: list, spec: dict, solid: np.ndarray) -> tuple[list, float]:
@@ -952,16 +975,23 @@ def cmd_fit(a: argparse.Namespace) -> None:
     import warnings
     # Depth noise, read off the support plane: the height cut above the plane and the margin of
     # the free space grow with it (a fixed 5 mm cut turns the table's noise into objects).
-    noise = depth_noise(views)
-    cut = max(SEGMENT_MIN_HEIGHT_M, NOISE_CUT_SIGMAS * noise)
+    noise, noise_ray = depth_noise(views)
+    cut = min(NOISE_CUT_MAX_M, max(SEGMENT_MIN_HEIGHT_M, NOISE_CUT_SIGMAS * noise))
+    noise_warn = []
+    if cut > SEGMENT_MIN_HEIGHT_M:
+        noise_warn.append(f"depth noise: {noise * 1000:.1f} mm of height on the support plane ({noise_ray * 1000:.1f} mm "
+                          f"along the rays): objects start {cut * 1000:.0f} mm above the table instead of "
+                          f"{SEGMENT_MIN_HEIGHT_M * 1000:.0f} mm"
+                          + (" (the most it is raised; anything lower is lost: average or filter the frames)"
+                             if cut >= NOISE_CUT_MAX_M else ""))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
             scene = rp.segment_scene(views, tracker=None, ignore_hand=panda, min_height=cut,
-                                     plane_threshold=max(SEGMENT_PLANE_M, NOISE_CUT_SIGMAS * noise))
+                                     plane_threshold=max(SEGMENT_PLANE_M, cut))
         except (ValueError, np.linalg.LinAlgError) as e:
             raise FramesError(f"no support plane or objects could be found in the frames: {e}") from None
-    warn = [str(w.message) for w in caught] + list(scene.warnings)
+    warn = noise_warn + [str(w.message) for w in caught] + list(scene.warnings)
     plane = scene.plane
     tilt = math.degrees(math.acos(min(1.0, abs(float(plane.normal[2])))))
     if tilt > 10:
@@ -980,7 +1010,7 @@ def cmd_fit(a: argparse.Namespace) -> None:
     tops: dict = {}
     fitted: dict = {}
     # The space the source views saw through (robot pixels unknown): it checks hulls and boxes.
-    free = rparts.FreeSpace(views, noise_m=noise)
+    free = rparts.FreeSpace(views, noise_m=noise_ray)
     sparse = [rp.voxel_downsample(c.points, 0.004)[0] if len(c.points) > 1 else c.points for c in clusters]
     for i in order:
         o = clusters[i]
@@ -1171,8 +1201,10 @@ def cmd_fit(a: argparse.Namespace) -> None:
                                                "robot_pixels": int(robot_px[f.id].sum())} for f in frames],
         "world": "robot base frame", "robot": {"urdf": urdf, "self_filter": "render of the URDF at the capture joints"
                                                + (" + Panda capsules (robo_perception)" if panda else "")},
-        "depth_noise": {"sigma_mm": r(noise * 1000, 2), "height_cut_m": r(cut, 4), "free_space_margin_m": r(free.margin, 4),
-                        "how": "1.4826 x MAD of the heights within 2 cm of a RANSAC support plane"},
+        "depth_noise": {"sigma_mm": r(noise * 1000, 2), "sigma_along_rays_mm": r(noise_ray * 1000, 2),
+                        "height_cut_m": r(cut, 4), "free_space_margin_m": r(free.margin, 4),
+                        "how": "1.4826 x the median distance below the mode of the heights within 2 cm of a "
+                               "RANSAC support plane (points below it only)"},
         "support_plane": {"normal": [r(v, 5) for v in plane.normal], "tilt_deg": r(tilt, 3),
                           "z_at_origin_m": r(plane.height_at_origin, 5)},
         "table": table,

@@ -36,6 +36,8 @@ EMPTY_MARGIN_M = 0.004
 EMPTY_MARGIN_REL = 0.005
 """A point counts as seen empty when it lies at least this far (plus this fraction of the
 depth, for sensor noise) in front of the surface a view saw along the same ray."""
+NOISE_MARGIN_SIGMAS = 3.0
+"""With measured depth noise, the margin grows by this many of its standard deviations."""
 EMPTY_TOL_M3 = 0.4e-6
 """A hull is accepted when the seen-empty space inside it is under 0.4 cm^3."""
 MAX_DECOMPOSE_M3 = 0.01
@@ -57,8 +59,9 @@ class FreeSpace:
     def __init__(self, views: list, noise_m: float = 0.0) -> None:
         from scipy.ndimage import minimum_filter
 
-        # A depth with noise of standard deviation `noise_m` says less: the margin grows by 3 of it.
-        self.margin = EMPTY_MARGIN_M + 3.0 * max(0.0, float(noise_m))
+        # A depth with noise of standard deviation `noise_m` (along the rays) says less: the
+        # margin grows by NOISE_MARGIN_SIGMAS of it.
+        self.margin = EMPTY_MARGIN_M + NOISE_MARGIN_SIGMAS * max(0.0, float(noise_m))
         self.cams = []
         for v in views:
             d = np.nan_to_num(np.asarray(v.depth, dtype=np.float64), nan=0.0, posinf=0.0)

@@ -223,7 +223,8 @@ pub fn export(sim: &mut Sim, motion: &Motion) -> anyhow::Result<Value> {
     // coordinate t = 0), with what MuJoCo's renderer needs to map it on a plane.
     let tex_image = |t: usize, mi: usize| -> anyhow::Result<Value> {
         let (adr, w, h, nc) = (tex_adr[t] as usize, tex_w[t] as usize, tex_h[t] as usize, tex_nc[t] as usize);
-        let Some(px) = tex_data.get(adr..adr + w * h * nc).filter(|_| (1..=4).contains(&nc) && w * h > 0) else {
+        let len = w.checked_mul(h).and_then(|n| n.checked_mul(nc)).filter(|&n| n > 0 && (1..=4).contains(&nc));
+        let Some(px) = len.and_then(|n| tex_data.get(adr..adr.checked_add(n)?)) else {
             bail!(
                 "texture {t} ('{}'): {w}x{h} pixels of {nc} channels do not fit the model's texture data",
                 name(Obj::mjOBJ_TEXTURE, t)

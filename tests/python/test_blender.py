@@ -201,13 +201,13 @@ def floor_figures(renders: Path, row: dict, floor_z: float, flatten: bool = Fals
     geometry (the sky left out), where the lights show.
 
     sim-host's floor (sim-host/src/mjcf.rs) is a 6 x 6 m plane at the world origin with a 2 x 2
-    checker texture and texrepeat 6 6, so MuJoCo's texture coordinates there are s = x - 1/2,
-    t = -y - 1/2 (x, y in metres): 0.5 m squares, the light colour (rgb1) where s and t have
-    fractional parts on the same side of 1/2. Pixels within 3 cm of a square's edge count in
+    checker texture and texrepeat 6 6, so MuJoCo's texture coordinates there are s = x + 3,
+    t = 3 - y (x, y in metres; `plane_uv.plane_st`): 0.5 m squares, the light colour (rgb1) where
+    s and t have fractional parts on the same side of 1/2. Pixels within 3 cm of a square's edge count in
     the difference, not in the contrast. `flatten`: Blender's floor pixels replaced by their mean
     colour first (what r2g blender drew before it mapped the texture)."""
     floor, xy, drawn = floor_pixels(renders / "mujoco", row["mujoco_image"], floor_z)
-    s, t = xy[..., 0] - 0.5, -xy[..., 1] - 0.5
+    s, t = xy[..., 0] + 3.0, 3.0 - xy[..., 1]
     fs, ft = s - np.floor(s), t - np.floor(t)
     light = (fs < 0.5) == (ft < 0.5)
     inner = floor & (np.minimum.reduce([abs(fs - 0.5), fs, 1 - fs, abs(ft - 0.5), ft, 1 - ft]) > 0.03)
@@ -397,3 +397,73 @@ if __name__ == "__main__":
     where = Path(sys.argv[2]) if len(sys.argv) > 2 else sheet_json.with_suffix(".renders")
     for r in rep["rows"]:
         print(json.dumps(floor_figures(where, r, floor_height(rep["gym"]))))
+
+
+def _quadrant_plane_render(tmp: Path, repeat: str, uniform: bool):
+    """MuJoCo's own render of a 1.2 x 0.8 m plane whose 2-D texture has a different colour in
+    each quadrant (synthetic), from a camera straight above, lit by ambient light alone (pixels
+    are the texture's colour). Returns (image, world x, y of every pixel, texture (H, W, 3),
+    plane half sizes)."""
+    import mujoco
+    sys_path = str(ROOT / "real2sim" / "py")
+    import sys
+    if sys_path not in sys.path:
+        sys.path.insert(0, sys_path)
+    from r2g_reconstruct_io import write_png
+
+    tex = np.zeros((8, 8, 3), dtype=np.uint8)
+    tex[:4, :4], tex[:4, 4:], tex[4:, :4], tex[4:, 4:] = (230, 30, 30), (30, 230, 30), (30, 30, 230), (230, 230, 30)
+    write_png(tmp / "quad.png", tex)
+    sx, sy, W, H, fovy, z = 0.6, 0.4, 240, 160, 60.0, 1.0
+    xml = f"""<mujoco><asset><texture name="q" type="2d" file="{tmp / 'quad.png'}"/>
+      <material name="m" texture="q" texrepeat="{repeat}" texuniform="{'true' if uniform else 'false'}"/></asset>
+      <visual><headlight ambient="1 1 1" diffuse="0 0 0" specular="0 0 0"/><quality shadowsize="0"/></visual>
+      <worldbody><geom type="plane" size="{sx} {sy} 0.1" material="m"/>
+      <camera name="top" pos="0 0 {z}" fovy="{fovy}"/></worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    with mujoco.Renderer(m, H, W) as r:
+        r.update_scene(d, camera="top")
+        img = r.render().astype(int)
+    f = 0.5 * H / np.tan(np.radians(fovy) / 2)
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    x, y = (u - W / 2) / f * z, -(v - H / 2) / f * z   # camera looks down -z, image up = +y
+    adr, tw, th = int(m.tex_adr[0]), int(m.tex_width[0]), int(m.tex_height[0])
+    nc = int(m.tex_nchannel[0])
+    data = np.asarray(m.tex_data[adr:adr + tw * th * nc]).reshape(th, tw, nc)[:, :, :3].astype(int)
+    return img, x, y, data, (sx, sy)
+
+
+@pytest.mark.parametrize("repeat,uniform", [("6 6", False), ("1.5 1", False), ("2 3", True)])
+def test_plane_texture_coordinates_match_mujocos_render(tmp_path, repeat, uniform):
+    """The floor's UVs (real2sim/blender/plane_uv.py, what build_scene.py gives the plane) put
+    each pixel of MuJoCo's own render in the texture quadrant MuJoCo drew there, for repeats
+    that are odd, uneven and uniform; the coordinates MuJoCo used for planes before 3.12 (an
+    offset of half a unit) do not (a checker repeated 6 x 6 hid that shift)."""
+    import sys
+    sys.path.insert(0, str(ROOT / "real2sim" / "blender"))
+    from plane_uv import plane_st
+
+    img, x, y, tex, size = _quadrant_plane_render(tmp_path, repeat, uniform)
+    rep = [float(v) for v in repeat.split()]
+    on = (np.abs(x) < size[0] - 0.01) & (np.abs(y) < size[1] - 0.01)
+
+    def agreement(s, t):
+        fs, ft = s - np.floor(s), t - np.floor(t)
+        # pixels within 8 % of a period of a quadrant border are left out (linear filtering
+        # blends the texels on either side of it)
+        clear = on & (np.minimum(np.abs(fs - 0.5), np.minimum(fs, 1 - fs)) > 0.08) \
+            & (np.minimum(np.abs(ft - 0.5), np.minimum(ft, 1 - ft)) > 0.08)
+        col = np.minimum((fs * tex.shape[1]).astype(int), tex.shape[1] - 1)
+        row = np.minimum((ft * tex.shape[0]).astype(int), tex.shape[0] - 1)
+        want = tex[row, col]
+        ok = np.abs(img - want).max(axis=-1) < 40
+        return float(ok[clear].mean()), int(clear.sum())
+
+    now, n = agreement(*plane_st(x, y, size, rep, uniform))
+    assert n > 5000 and now > 0.97, (repeat, uniform, now, n)
+    rx, ry = rep
+    old, _ = agreement(0.5 * rx * x / (1 if uniform else size[0]) - 0.5, -0.5 * ry * y / (1 if uniform else size[1]) - 0.5)
+    print(f"repeat {repeat} uniform {uniform}: {now:.3f} of {n} pixels agree; the pre-3.12 coordinates {old:.3f}")
+    assert old < 0.9, old

@@ -510,20 +510,36 @@ def test_container_fit_leaves_the_floor_seen_from_above_out():
 
 
 def test_depth_noise_is_read_off_the_support_plane():
-    """A synthetic camera 1 m above a table: noise-free depth gives 0; depth with Gaussian noise
-    of 2 mm gives about 2 mm (a block standing on the table does not change it), which is what
-    raises the height cut above the plane and the free-space margin."""
+    """Synthetic cameras above a table with a 5 cm block and a 1.5 cm plate covering a fifth of
+    the view: noise-free depth gives (about) 0; Gaussian depth noise of 2 mm gives about 2 mm
+    along the rays from a camera straight above and from one at 45 degrees (where it is about
+    1.4 mm of height), the plate and the block not counting as noise because only the heights
+    below the table's mode are used; the free-space margin grows with it."""
     import r2g_reconstruct as rc
 
     W = H = 240
     f = 300.0
-    T = np.eye(4)
-    T[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]
-    T[:3, 3] = [0.0, 0.0, 1.0]
+    top = np.eye(4)
+    top[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]
+    top[:3, 3] = [0.0, 0.0, 1.0]
     d = np.ones((H, W))
     d[100:140, 100:140] = 0.95    # a 5 cm tall block
-    assert rc.depth_noise([_view(d, f, f, W / 2, H / 2, T)]) < 2e-4
+    d[:108, :] = 0.985            # a 1.5 cm plate under the top 45 % of the view ...
+    d[:108, 150:] = 1.0           # ... a fifth of the view in all
+    assert max(rc.depth_noise([_view(d, f, f, W / 2, H / 2, top)])) < 2e-4
     noisy = d + np.random.default_rng(1).normal(0.0, 0.002, d.shape)
-    sigma = rc.depth_noise([_view(noisy, f, f, W / 2, H / 2, T)])
-    assert 0.0017 < sigma < 0.0023, sigma
-    assert rparts.FreeSpace([_view(noisy, f, f, W / 2, H / 2, T)], noise_m=sigma).margin > rparts.EMPTY_MARGIN_M + 0.005
+    sigma_h, sigma_ray = rc.depth_noise([_view(noisy, f, f, W / 2, H / 2, top)])
+    assert 0.0017 < sigma_h < 0.0023 and 0.0017 < sigma_ray < 0.0023, (sigma_h, sigma_ray)
+    assert rparts.FreeSpace([_view(noisy, f, f, W / 2, H / 2, top)], noise_m=sigma_ray).margin > \
+        rparts.EMPTY_MARGIN_M + 0.005
+    # A camera 1 m away at 45 degrees (looking along +x and down) over a bare table.
+    c = math.sqrt(0.5)
+    side = np.eye(4)
+    side[:3, :3] = np.column_stack([[0.0, -1.0, 0.0], [-c, 0.0, -c], [c, 0.0, -c]])
+    side[:3, 3] = [-c, 0.0, c]
+    u, v = np.meshgrid(np.arange(W) - W / 2 + 0.5, np.arange(H) - H / 2 + 0.5)
+    rays = np.stack([u / f, v / f, np.ones_like(u)], -1) @ side[:3, :3].T
+    depth = -side[2, 3] / rays[..., 2]              # z-depth to the plane z = 0
+    depth += np.random.default_rng(2).normal(0.0, 0.002, depth.shape)
+    sigma_h, sigma_ray = rc.depth_noise([_view(depth, f, f, W / 2, H / 2, side)])
+    assert 0.0011 < sigma_h < 0.0017 and 0.0017 < sigma_ray < 0.0024, (sigma_h, sigma_ray)
