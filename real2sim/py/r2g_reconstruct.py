@@ -397,10 +397,7 @@ def solid_samples(spec: dict, step: float = 0.003, clearance: float = SOLID_CLEA
         L = L[np.hypot(L[:, 0], L[:, 1]) <= s[0]]
     elif shape == "sphere":
         L = L[np.linalg.norm(L, axis=1) <= s[0]]
-    w, x, y, z = spec.get("quat_wxyz", [1.0, 0.0, 0.0, 0.0])
-    Rm = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    Rm = rparts.quat_matrix(spec.get("quat_wxyz", [1.0, 0.0, 0.0, 0.0]))
     return L @ Rm.T + np.array(spec["position_m"])
 
 
@@ -410,10 +407,7 @@ def solid_contains(spec: dict, X: np.ndarray, clearance: float = SOLID_CLEARANCE
     shape = spec.get("shape")
     if shape not in ("box", "cylinder", "sphere") or "parts" in spec or not len(X):
         return np.zeros(len(X), dtype=bool)
-    w, x, y, z = spec.get("quat_wxyz", [1.0, 0.0, 0.0, 0.0])
-    Rm = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    Rm = rparts.quat_matrix(spec.get("quat_wxyz", [1.0, 0.0, 0.0, 0.0]))
     L = (X - np.array(spec["position_m"])) @ Rm
     s = [v + clearance for v in spec["size_m"]]
     if shape == "box":
@@ -480,10 +474,7 @@ def cradle_parts(columns: list, spec: dict, solid: np.ndarray) -> tuple[list, fl
     relative to its origin and turned by its `quat_wxyz`, a bin's yaw), each lowered below any of
     `solid` (the other objects' grown solids) it would reach into. Returns (parts, volume)."""
     origin = np.array(spec["position_m"]) - np.array([0.0, 0.0, LIFT_M])
-    w, x, y, z = spec.get("quat_wxyz", [1.0, 0.0, 0.0, 0.0])
-    Rm = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    Rm = rparts.quat_matrix(spec.get("quat_wxyz", [1.0, 0.0, 0.0, 0.0]))
     turned = not np.allclose(Rm, np.eye(3))
     out, volume = [], 0.0
     for c, half in rparts.cradle_boxes(columns):
@@ -498,7 +489,7 @@ def cradle_parts(columns: list, spec: dict, solid: np.ndarray) -> tuple[list, fl
                 "position_m": [r(float(v), 5) for v in Rm.T @ (c - origin)]}
         if turned:
             # World axes in the compound's frame: the inverse of its rotation.
-            part["quat_wxyz"] = [r(w, 6), r(-x, 6), r(-y, 6), r(-z, 6)]
+            part["quat_wxyz"] = [r(v, 6) for v in rparts.quat_of(Rm.T)]
         out.append(part)
         volume += 8 * float(np.prod(half))
     return out, volume

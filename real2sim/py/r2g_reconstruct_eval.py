@@ -137,12 +137,9 @@ def add_depth_noise(frames: Path, sigma_mm: float, rel: float = 0.0, seed: int =
 # --------------------------------------------------------------------------------------------
 
 def _quat_mat(q: list) -> np.ndarray:
-    w, x, y, z = q
-    n = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    import r2g_reconstruct_parts as rparts
+
+    return rparts.quat_matrix(q)
 
 
 def _part_corners(shape: str, size: list, mesh: Optional[Path], scale: list) -> np.ndarray:

@@ -349,6 +349,16 @@ def box_of(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return best[1], best[2], best[3]
 
 
+def quat_matrix(q: list) -> np.ndarray:
+    """The rotation matrix of a quaternion [w, x, y, z] (normalised first)."""
+    w, x, y, z = (float(v) for v in q)
+    n = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
 def quat_of(Rm: np.ndarray) -> list:
     """Rotation matrix -> [w, x, y, z]."""
     m = Rm

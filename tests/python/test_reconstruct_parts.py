@@ -543,3 +543,19 @@ def test_depth_noise_is_read_off_the_support_plane():
     depth += np.random.default_rng(2).normal(0.0, 0.002, depth.shape)
     sigma_h, sigma_ray = rc.depth_noise([_view(depth, f, f, W / 2, H / 2, side)])
     assert 0.0011 < sigma_h < 0.0017 and 0.0017 < sigma_ray < 0.0024, (sigma_h, sigma_ray)
+
+
+def test_cradle_boxes_land_under_the_columns_of_a_turned_compound():
+    """A compound turned 90 degrees about z (a bin's yaw): its cradle box, put back into the
+    world through the compound's pose, lies where the columns are, with the world's axes."""
+    import r2g_reconstruct as rc
+
+    cols = [(0.552 + 0.004 * i, 0.002 + 0.004 * j, 0.0, 0.01) for i in range(3) for j in range(2)]
+    q = [math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]
+    spec = {"position_m": [0.5, 0.0, rc.LIFT_M], "quat_wxyz": q}
+    parts, volume = rc.cradle_parts(cols, spec, np.zeros((0, 3)))
+    assert len(parts) == 1 and volume > 0, parts
+    R = rparts.quat_matrix(q)
+    centre = np.array([0.5, 0.0, 0.0]) + R @ np.array(parts[0]["position_m"])
+    assert np.allclose(centre, [0.558, 0.004, 0.005], atol=1e-4), centre
+    assert np.allclose(R @ rparts.quat_matrix(parts[0]["quat_wxyz"]), np.eye(3), atol=1e-5)
